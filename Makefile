@@ -1,0 +1,40 @@
+# Both entry points create or reuse .venv themselves.
+PY      ?= python3
+VENV    ?= .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+TSTAMP  := $(VENV)/.installed-test
+OUT     ?= out
+
+.PHONY: run test install install-test bench clean lint
+
+$(BIN)/python:
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+$(TSTAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $@ $(STAMP)
+
+install: $(STAMP)
+install-test: $(TSTAMP)
+
+# The main job: render the default scenario (the paper's water tank) at A, B, C.
+run: $(STAMP)
+	$(BIN)/hilsim render --at A,B,C --out $(OUT)
+
+test: $(TSTAMP)
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+lint: $(TSTAMP)
+	$(BIN)/python -m mypy
+
+clean:
+	rm -rf $(OUT) build dist *.egg-info .pytest_cache .mypy_cache
