@@ -1,0 +1,220 @@
+"""A TCP server link: many clients, each with its own bounded queue of whole messages.
+
+The device above it hands over whole messages (a sonar frame, a reply) and
+decides what bytes mean; this module only moves them. Guarantees:
+
+* a client that reads too slowly loses whole messages (counted), never half
+  of one, and never slows the others: each client has a queue of at most
+  ``queue_len`` messages and a transport buffer capped at ``write_buffer``
+  bytes, so memory per client is bounded;
+* at most ``max_clients`` connections; more are refused with a log line;
+* whatever a client sends or however it disconnects (mid-message, reset,
+  half-open), the server keeps serving the others.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+from dataclasses import dataclass, field
+from typing import Awaitable, Callable
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LinkStats:
+    connected: int = 0
+    accepted: int = 0
+    refused: int = 0
+    messages_sent: int = 0
+    bytes_sent: int = 0
+    messages_dropped: int = 0
+    bytes_received: int = 0
+
+
+@dataclass(eq=False)
+class Client:
+    """One connected peer."""
+
+    id: int
+    peer: str
+    writer: asyncio.StreamWriter
+    queue: asyncio.Queue[bytes]
+    sent: int = 0
+    dropped: int = 0
+    closed: bool = False
+    state: dict = field(default_factory=dict)  # the device's per-client state (codec, settings)
+
+    def __repr__(self) -> str:
+        return f"Client#{self.id}({self.peer})"
+
+
+OnConnect = Callable[[Client], Awaitable[None] | None]
+OnData = Callable[[Client, bytes], Awaitable[None] | None]
+OnDisconnect = Callable[[Client], Awaitable[None] | None]
+
+
+async def _maybe_await(x: Awaitable[None] | None) -> None:
+    if x is not None:
+        await x
+
+
+class TcpServer:
+    """An asyncio TCP server with per-client bounded, whole-message send queues."""
+
+    _ids = itertools.count(1)
+
+    def __init__(self, name: str, host: str = "127.0.0.1", port: int = 0, *,
+                 max_clients: int = 32, queue_len: int = 4, write_buffer: int = 256 * 1024,
+                 read_size: int = 4096, idle_timeout: float | None = None,
+                 on_connect: OnConnect | None = None, on_data: OnData | None = None,
+                 on_disconnect: OnDisconnect | None = None) -> None:
+        self.name = name
+        self.host = host
+        self.port = port
+        self.max_clients = max_clients
+        self.queue_len = queue_len
+        self.write_buffer = write_buffer
+        self.read_size = read_size
+        self.idle_timeout = idle_timeout
+        self.on_connect = on_connect
+        self.on_data = on_data
+        self.on_disconnect = on_disconnect
+        self.clients: dict[int, Client] = {}
+        self.stats = LinkStats()
+        self._server: asyncio.base_events.Server | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    async def start(self) -> tuple[str, int]:
+        """Listen; returns the bound (host, port) (port 0 picks a free one)."""
+        self._server = await asyncio.start_server(self._handle, self.host, self.port, limit=self.read_size * 4)
+        sock = self._server.sockets[0]
+        self.host, self.port = sock.getsockname()[:2]
+        log.info("%s listening on %s", self.name, self.address)
+        return self.host, self.port
+
+    async def close(self) -> None:
+        """Stop listening and drop every client."""
+        if self._server is not None:
+            self._server.close()
+        for c in list(self.clients.values()):
+            self._drop(c)
+        for t in list(self._tasks):
+            t.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self._server is not None:
+            try:
+                await asyncio.wait_for(self._server.wait_closed(), 2.0)
+            except (asyncio.TimeoutError, Exception):  # noqa: BLE001 - shutting down regardless
+                pass
+            self._server = None
+
+    def broadcast(self, message: bytes, only: Callable[[Client], bool] | None = None) -> int:
+        """Queue ``message`` for every client (or those ``only`` accepts); returns how many took it."""
+        n = 0
+        for c in list(self.clients.values()):
+            if only is None or only(c):
+                n += self.send(c, message)
+        return n
+
+    def send(self, client: Client, message: bytes) -> bool:
+        """Queue a whole message for one client; False (and counted) if its queue is full."""
+        if client.closed:
+            return False
+        try:
+            client.queue.put_nowait(message)
+            return True
+        except asyncio.QueueFull:
+            client.dropped += 1
+            self.stats.messages_dropped += 1
+            return False
+
+    def disconnect(self, client: Client) -> None:
+        """Close a client's connection (the device decided so)."""
+        self._drop(client)
+
+    # -- internals --
+
+    def _spawn(self, coro: Awaitable[None]) -> asyncio.Task[None]:
+        t = asyncio.ensure_future(coro)
+        self._tasks.add(t)
+        t.add_done_callback(self._tasks.discard)
+        return t
+
+    def _drop(self, c: Client) -> None:
+        if c.closed:
+            return
+        c.closed = True
+        self.clients.pop(c.id, None)
+        self.stats.connected = len(self.clients)
+        try:
+            c.writer.transport.abort()
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = writer.get_extra_info("peername")
+        peer_s = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        if len(self.clients) >= self.max_clients:
+            self.stats.refused += 1
+            log.warning("%s: refused %s: client limit %d reached", self.name, peer_s, self.max_clients)
+            writer.transport.abort()
+            return
+        writer.transport.set_write_buffer_limits(high=self.write_buffer)
+        c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len))
+        self.clients[c.id] = c
+        self.stats.accepted += 1
+        self.stats.connected = len(self.clients)
+        log.info("%s: client %s connected (%d now)", self.name, peer_s, len(self.clients))
+        sender = self._spawn(self._send_loop(c))
+        try:
+            if self.on_connect is not None:
+                await _maybe_await(self.on_connect(c))
+            while not c.closed:
+                if self.idle_timeout is not None:
+                    data = await asyncio.wait_for(reader.read(self.read_size), self.idle_timeout)
+                else:
+                    data = await reader.read(self.read_size)
+                if not data:
+                    break
+                self.stats.bytes_received += len(data)
+                if self.on_data is not None:
+                    await _maybe_await(self.on_data(c, data))
+        except asyncio.TimeoutError:
+            log.info("%s: client %s idle for %.0f s, dropped", self.name, peer_s, self.idle_timeout)
+        except (ConnectionError, OSError):
+            pass
+        except asyncio.CancelledError:
+            pass
+        except Exception:  # a device bug must not take the server down: log it loudly
+            log.exception("%s: error while serving %s", self.name, peer_s)
+        finally:
+            self._drop(c)
+            sender.cancel()
+            log.info("%s: client %s disconnected (sent %d, dropped %d)", self.name, peer_s, c.sent, c.dropped)
+            if self.on_disconnect is not None:
+                try:
+                    await _maybe_await(self.on_disconnect(c))
+                except Exception:  # noqa: BLE001
+                    log.exception("%s: on_disconnect failed", self.name)
+
+    async def _send_loop(self, c: Client) -> None:
+        try:
+            while not c.closed:
+                msg = await c.queue.get()
+                c.writer.write(msg)
+                await c.writer.drain()
+                c.sent += 1
+                self.stats.messages_sent += 1
+                self.stats.bytes_sent += len(msg)
+        except (ConnectionError, OSError, asyncio.CancelledError):
+            pass
+        finally:
+            self._drop(c)

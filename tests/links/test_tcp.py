@@ -1,0 +1,158 @@
+"""The TCP server link: whole messages, bounded queues, client limits, rude clients."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+
+import pytest
+
+from hilsim.links.tcp import TcpServer
+
+MSG = 50_000  # bytes per message, like a sonar frame
+
+
+def message(i: int) -> bytes:
+    body = bytes([i % 251]) * (MSG - 8)
+    return struct.pack("<II", 0xC0FFEE, i) + body
+
+
+async def read_message(reader: asyncio.StreamReader) -> int:
+    data = await reader.readexactly(MSG)
+    magic, i = struct.unpack_from("<II", data)
+    assert magic == 0xC0FFEE
+    assert data[8:] == bytes([i % 251]) * (MSG - 8), "a message arrived torn or mixed"
+    return i
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 30))
+
+
+def test_fast_clients_get_every_message_and_slow_ones_lose_whole_messages():
+    async def main():
+        srv = TcpServer("t", queue_len=4, write_buffer=64 * 1024)
+        host, port = await srv.start()
+        fast = [await asyncio.open_connection(host, port) for _ in range(3)]
+        # a client that never reads, with a tiny receive buffer
+        slow = socket.socket()
+        slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        slow.connect((host, port))
+        while srv.stats.connected < 4:
+            await asyncio.sleep(0.01)
+        n = 200  # 10 MB: more than the kernel buffers of a client that never reads
+        got = [[] for _ in fast]
+
+        async def consume(k, r):
+            while len(got[k]) < n:
+                got[k].append(await read_message(r))
+
+        readers = [asyncio.ensure_future(consume(k, r)) for k, (r, _) in enumerate(fast)]
+        for i in range(n):
+            srv.broadcast(message(i))
+            await asyncio.sleep(0.002)
+        await asyncio.wait_for(asyncio.gather(*readers), 20)
+        for g in got:
+            assert g == list(range(n))
+        slow_port = slow.getsockname()[1]
+        slow_client = [c for c in srv.clients.values() if c.peer.endswith(f":{slow_port}")][0]
+        assert slow_client.dropped > 0
+        # what the slow client did receive is whole messages in order
+        slow.setblocking(True)
+        slow.settimeout(2)
+        buf = b""
+        try:
+            while True:
+                chunk = slow.recv(1 << 20)
+                if not chunk:
+                    break
+                buf += chunk
+                if len(buf) >= slow_client.sent * MSG:
+                    break
+        except socket.timeout:
+            pass
+        k = len(buf) // MSG
+        ids = [struct.unpack_from("<II", buf, j * MSG)[1] for j in range(k)]
+        assert ids == sorted(ids) and len(set(ids)) == len(ids)
+        slow.close()
+        for _, w in fast:
+            w.close()
+        await srv.close()
+
+    run(main())
+
+
+def test_client_limit_refuses_with_a_count_and_keeps_serving():
+    async def main():
+        srv = TcpServer("t", max_clients=2)
+        host, port = await srv.start()
+        a = await asyncio.open_connection(host, port)
+        b = await asyncio.open_connection(host, port)
+        while srv.stats.connected < 2:
+            await asyncio.sleep(0.01)
+        r3, w3 = await asyncio.open_connection(host, port)
+        assert await asyncio.wait_for(r3.read(10), 5) == b""  # refused: closed at once
+        assert srv.stats.refused == 1
+        srv.broadcast(message(7))
+        assert await read_message(a[0]) == 7
+        assert await read_message(b[0]) == 7
+        for _, w in (a, b):
+            w.close()
+        w3.close()
+        await srv.close()
+
+    run(main())
+
+
+def test_disconnect_mid_message_and_reset_leave_the_server_serving():
+    async def main():
+        received = []
+        srv = TcpServer("t", on_data=lambda c, d: received.append(d))
+        host, port = await srv.start()
+        for _ in range(20):
+            s = socket.socket()
+            s.connect((host, port))
+            s.sendall(b"partial comm")
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            s.close()  # RST
+        good_r, good_w = await asyncio.open_connection(host, port)
+        while srv.stats.connected != 1:
+            await asyncio.sleep(0.01)
+        srv.broadcast(message(3))
+        assert await read_message(good_r) == 3
+        good_w.write(b"hello")
+        await good_w.drain()
+        for _ in range(100):
+            if b"hello" in b"".join(received):
+                break
+            await asyncio.sleep(0.01)
+        assert b"hello" in b"".join(received)
+        good_w.close()
+        await srv.close()
+        assert srv.stats.connected == 0
+
+    run(main())
+
+
+def test_a_device_error_on_one_client_does_not_stop_the_server():
+    def boom(client, data):
+        if data.startswith(b"crash"):
+            raise RuntimeError("device bug")
+
+    async def main():
+        srv = TcpServer("t", on_data=boom)
+        host, port = await srv.start()
+        r1, w1 = await asyncio.open_connection(host, port)
+        w1.write(b"crash now")
+        await w1.drain()
+        assert await asyncio.wait_for(r1.read(10), 5) == b""
+        r2, w2 = await asyncio.open_connection(host, port)
+        while srv.stats.connected != 1:
+            await asyncio.sleep(0.01)
+        srv.broadcast(message(1))
+        assert await read_message(r2) == 1
+        w2.close()
+        await srv.close()
+
+    run(main())
