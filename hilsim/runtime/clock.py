@@ -1,0 +1,96 @@
+"""Clocks the scheduler runs against: real time, or virtual time (as fast as possible).
+
+A clock's time is seconds [s] since its epoch (for :class:`RealTimeClock`,
+its creation or :meth:`RealTimeClock.reset`). The scheduler asks a clock to
+wait until an *absolute* deadline, never for a duration, so waiting errors do
+not accumulate: over an hour the ticks stay on the grid.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from abc import ABC, abstractmethod
+from typing import Callable
+
+
+class Clock(ABC):
+    """A time source the scheduler can wait on. ``realtime`` tells which kind."""
+
+    realtime: bool = False
+
+    @abstractmethod
+    def now(self) -> float:
+        """[s] current time since the clock's epoch."""
+
+    @abstractmethod
+    def sleep_until(self, deadline: float) -> None:
+        """Block until ``now() >= deadline`` [s] (returns at once if already past)."""
+
+    @abstractmethod
+    async def sleep_until_async(self, deadline: float) -> None:
+        """Wait in asyncio until ``now() >= deadline`` [s]; other tasks run meanwhile."""
+
+
+class VirtualClock(Clock):
+    """Virtual time: waiting jumps the time to the deadline at once (never backwards).
+
+    For tests and batch runs: a 60 s scenario takes as long as its callbacks.
+    """
+
+    realtime = False
+
+    def __init__(self, start: float = 0.0):
+        self._t = float(start)
+
+    def now(self) -> float:
+        return self._t
+
+    def sleep_until(self, deadline: float) -> None:
+        if deadline > self._t:
+            self._t = float(deadline)
+
+    async def sleep_until_async(self, deadline: float) -> None:
+        self.sleep_until(deadline)
+        await asyncio.sleep(0)  # let the loop's other tasks run between ticks
+
+
+class RealTimeClock(Clock):
+    """Wall-clock time from ``time.monotonic`` (or ``source``) since the epoch.
+
+    ``sleep_until`` sleeps to the absolute deadline with ``time.sleep`` (on
+    Linux its overshoot is a fraction of a millisecond) and re-checks, so it
+    never returns early. ``sleep_until_async`` awaits ``asyncio.sleep`` until
+    ``async_margin`` [s] before the deadline (asyncio's timers round up to
+    whole milliseconds) and then sleeps the remainder synchronously, blocking
+    the loop at most ``async_margin``; 0 leaves the timing to asyncio alone.
+    """
+
+    realtime = True
+
+    def __init__(self, source: Callable[[], float] = time.monotonic, async_margin: float = 0.0015):
+        self._source = source
+        self.async_margin = float(async_margin)
+        self._epoch = source()
+
+    def reset(self) -> None:
+        """Make ``now()`` zero again (call right before a run starts)."""
+        self._epoch = self._source()
+
+    def now(self) -> float:
+        return self._source() - self._epoch
+
+    def sleep_until(self, deadline: float) -> None:
+        while True:
+            remaining = deadline - self.now()
+            if remaining <= 0:
+                return
+            time.sleep(remaining)
+
+    async def sleep_until_async(self, deadline: float) -> None:
+        remaining = deadline - self.now()
+        if remaining > self.async_margin:
+            await asyncio.sleep(remaining - self.async_margin)
+        else:
+            await asyncio.sleep(0)
+        self.sleep_until(deadline)

@@ -1,0 +1,250 @@
+"""One scheduler of periodic events against a swappable clock.
+
+An event has a period [s], an offset [s] and a callback taking the tick's
+*scheduled* time [s] (not the wall time: the same events give the same
+results in real time and in virtual time). Deadlines are the absolute grid
+``offset + k * period`` with integer ``k``, so nothing drifts. Events due at
+the same time run by ``priority`` (lower first), then in the order added.
+
+Late ticks are counted, never bunched: a tick runs once, however late, and
+the next one is the latest grid point already due (run at once, late) or the
+next one ahead; grid points passed over are counted as skipped. Lateness is
+``clock.now() - deadline`` just before the callback; a tick is *late* when
+that exceeds the event's tolerance.
+
+:meth:`Scheduler.run` runs synchronously (fast mode, tests); the live bridge
+awaits :meth:`Scheduler.run_async` in the asyncio loop that also serves its
+links. :class:`VehicleLoop` binds the physics and the navigation sensors.
+"""
+
+from __future__ import annotations
+
+import heapq
+import inspect
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable, Sequence
+
+from hilsim.runtime.clock import Clock, VirtualClock
+
+if TYPE_CHECKING:
+    from hilsim.sim.state import VehicleState
+    from hilsim.sim.thrusters import ThrusterSet
+    from hilsim.sim.vehicle import Current, Vehicle
+
+DEFAULT_PHYSICS_RATE = 200.0  # [Hz]
+
+
+@dataclass
+class EventStats:
+    """Timing of one event: ticks run, late ticks, skipped grid points, and
+    lateness [s] (max and sum; every value in ``lateness`` when recorded)."""
+
+    ticks: int = 0
+    late: int = 0
+    skipped: int = 0
+    max_lateness: float = 0.0
+    total_lateness: float = 0.0
+    lateness: list[float] | None = None
+
+    @property
+    def mean_lateness(self) -> float:
+        """[s] mean lateness over the ticks run."""
+        return self.total_lateness / self.ticks if self.ticks else 0.0
+
+
+@dataclass(eq=False)
+class PeriodicEvent:
+    """A periodic event: ``callback(t)`` at ``t = offset + k * period`` [s].
+
+    tolerance [s]: lateness above it counts as late (default min(1 ms, period / 4)).
+    A callback may return an awaitable; :meth:`Scheduler.run_async` awaits it.
+    """
+
+    name: str
+    period: float
+    callback: Callable[[float], Any]
+    offset: float = 0.0
+    priority: int = 0
+    tolerance: float = -1.0
+    stats: EventStats = field(default_factory=EventStats)
+    index: int = 0
+    active: bool = True
+
+    def deadline(self, k: int) -> float:
+        """[s] the k-th grid time."""
+        return self.offset + k * self.period
+
+
+class Scheduler:
+    """Runs periodic events against ``clock`` (default a :class:`VirtualClock`).
+
+    record_lateness: keep every tick's lateness in ``EventStats.lateness``.
+    """
+
+    def __init__(self, clock: Clock | None = None, record_lateness: bool = False):
+        self.clock = clock if clock is not None else VirtualClock()
+        self.record_lateness = record_lateness
+        self.events: list[PeriodicEvent] = []
+        self._heap: list[tuple[float, int, int, PeriodicEvent]] = []
+        self._seq = 0
+        self._stopping = False
+        self._started = False
+
+    def add(self, name: str, period: float, callback: Callable[[float], Any], offset: float = 0.0,
+            priority: int = 0, tolerance: float | None = None) -> PeriodicEvent:
+        """Add an event; period, offset and tolerance in [s]. Added before the
+        first run, its first tick is at ``offset`` (reset a real clock right
+        before running); added later, at the first grid point not yet past."""
+        if not (period > 0 and math.isfinite(period)):
+            raise ValueError(f"event {name!r}: period must be a positive number of seconds, got {period}")
+        tol = min(1e-3, period / 4) if tolerance is None else float(tolerance)
+        ev = PeriodicEvent(name, float(period), callback, float(offset), int(priority), tol)
+        if self.record_lateness:
+            ev.stats.lateness = []
+        if self._started:
+            ev.index = max(0, math.ceil((self.clock.now() - ev.offset) / ev.period - 1e-9))
+        self.events.append(ev)
+        self._push(ev)
+        return ev
+
+    def remove(self, event: PeriodicEvent) -> None:
+        """Stop an event; its pending tick is dropped."""
+        event.active = False
+        if event in self.events:
+            self.events.remove(event)
+
+    def stop(self) -> None:
+        """Make a running :meth:`run` / :meth:`run_async` return after the current tick."""
+        self._stopping = True
+
+    def _push(self, ev: PeriodicEvent) -> None:
+        self._seq += 1
+        heapq.heappush(self._heap, (ev.deadline(ev.index), ev.priority, self._seq, ev))
+
+    def _next(self, until: float | None) -> tuple[float, PeriodicEvent] | None:
+        while self._heap:
+            t, _, _, ev = self._heap[0]
+            if not ev.active:
+                heapq.heappop(self._heap)
+                continue
+            if until is not None and t > until + 1e-12:
+                return None
+            heapq.heappop(self._heap)
+            return t, ev
+        return None
+
+    def _begin(self, t: float, ev: PeriodicEvent) -> None:
+        lateness = max(0.0, self.clock.now() - t)
+        s = ev.stats
+        s.ticks += 1
+        s.total_lateness += lateness
+        s.max_lateness = max(s.max_lateness, lateness)
+        if lateness > ev.tolerance:
+            s.late += 1
+        if s.lateness is not None:
+            s.lateness.append(lateness)
+
+    def _reschedule(self, ev: PeriodicEvent) -> None:
+        if not ev.active:
+            return
+        due = math.floor((self.clock.now() - ev.offset) / ev.period + 1e-9)
+        nxt = max(ev.index + 1, due)
+        ev.stats.skipped += nxt - ev.index - 1
+        ev.index = nxt
+        self._push(ev)
+
+    def run(self, until: float) -> None:
+        """Run every tick with deadline <= ``until`` [s], waiting on the clock
+        (instantly for a virtual one), then wait until ``until`` itself."""
+        self._stopping = False
+        self._started = True
+        while not self._stopping:
+            nxt = self._next(until)
+            if nxt is None:
+                break
+            t, ev = nxt
+            self.clock.sleep_until(t)
+            self._begin(t, ev)
+            result = ev.callback(t)
+            if inspect.isawaitable(result):
+                raise TypeError(f"event {ev.name!r} returned an awaitable; use run_async")
+            self._reschedule(ev)
+        if not self._stopping:
+            self.clock.sleep_until(until)
+
+    async def run_async(self, until: float | None = None) -> None:
+        """As :meth:`run`, in asyncio: other tasks run while waiting for a deadline.
+        ``until`` None runs until :meth:`stop` (or cancellation)."""
+        self._stopping = False
+        self._started = True
+        while not self._stopping:
+            nxt = self._next(until)
+            if nxt is None:
+                if until is None:  # no events yet: wait for some to be added
+                    await self.clock.sleep_until_async(self.clock.now() + 0.01)
+                    continue
+                break
+            t, ev = nxt
+            await self.clock.sleep_until_async(t)
+            self._begin(t, ev)
+            result = ev.callback(t)
+            if inspect.isawaitable(result):
+                await result
+            self._reschedule(ev)
+        if until is not None and not self._stopping:
+            await self.clock.sleep_until_async(until)
+
+    def report(self) -> str:
+        """One line per event: ticks, late, skipped, max and mean lateness [ms]."""
+        lines = []
+        for ev in self.events:
+            s = ev.stats
+            lines.append(f"{ev.name}: {s.ticks} ticks at {1 / ev.period:g} Hz, {s.late} late, "
+                         f"{s.skipped} skipped, lateness max {s.max_lateness * 1e3:.3f} ms "
+                         f"mean {s.mean_lateness * 1e3:.3f} ms")
+        return "\n".join(lines)
+
+
+class VehicleLoop:
+    """The physics and the navigation sensors, as events of a scheduler.
+
+    Physics runs every ``1 / physics_rate`` [s] (priority 0): it integrates
+    from the state's time to the tick's time, so a skipped tick lengthens the
+    step instead of losing time. Each sensor runs at its own rate and offset
+    (priority 10, after the physics of the same instant) and passes its
+    reading to ``on_reading(sensor, reading)``.
+    """
+
+    def __init__(self, vehicle: "Vehicle", thrusters: "ThrusterSet | None", state: "VehicleState",
+                 current: "Current | None" = None, physics_rate: float = DEFAULT_PHYSICS_RATE):
+        self.vehicle = vehicle
+        self.thrusters = thrusters
+        self.state = state
+        self.current = current
+        self.physics_rate = float(physics_rate)
+        self.readings: dict[str, Any] = {}
+        self.wrench: Sequence[float] = (0.0,) * 6  # used when there are no thrusters
+
+    def physics_tick(self, t: float) -> None:
+        """Advance the state to time ``t`` [s]."""
+        dt = t - self.state.time
+        if dt <= 1e-12:
+            return
+        if self.thrusters is not None:
+            self.state = self.vehicle.step_with_thrusters(self.state, dt, self.thrusters, self.current)
+        else:
+            self.state = self.vehicle.step(self.state, dt, self.wrench, self.current)
+
+    def attach(self, scheduler: Scheduler, sensors: Sequence[Any] = (),
+               on_reading: Callable[[Any, Any], None] | None = None) -> list[PeriodicEvent]:
+        """Register the physics and ``sensors`` (hilsim.sim.navigation sensors) on ``scheduler``."""
+        events = [scheduler.add("physics", 1.0 / self.physics_rate, self.physics_tick, priority=0)]
+        for sensor in sensors:
+            def tick(t: float, sensor: Any = sensor) -> None:
+                reading = sensor.sample(self.state)
+                self.readings[sensor.name] = reading
+                if on_reading is not None:
+                    on_reading(sensor, reading)
+            events.append(scheduler.add(sensor.name, sensor.period, tick, offset=sensor.offset, priority=10))
+        return events
