@@ -165,6 +165,26 @@ def test_spread_deposit_splits_by_overlap() -> None:
     assert np.count_nonzero(out) == 7  # untouched cells are exactly zero
 
 
+def test_spread_deposit_matches_brute_force_overlaps() -> None:
+    rng = np.random.default_rng(11)
+    n = 400
+    u = rng.uniform(0.0, 50.0, n)
+    width = np.where(rng.uniform(size=n) < 0.2, 0.0, rng.uniform(0.0, 6.0, n))
+    energy = rng.uniform(0.1, 3.0, n)
+    beam = rng.integers(0, 3, n)
+    out = spread_deposit(u, width, energy, beam, n_samples=80, n_beams=3)
+    want = np.zeros((80, 3))
+    for ui, wi, ei, bi in zip(u, width, energy, beam):
+        if wi == 0.0:
+            want[int(ui), bi] += ei
+            continue
+        lo, hi = ui - wi / 2, ui + wi / 2
+        for j in range(80):
+            want[j, bi] += ei * max(0.0, min(hi, j + 1) - max(lo, j)) / wi
+    np.testing.assert_allclose(out, want, rtol=1e-10, atol=1e-12)
+    assert np.all(out[57:] == 0.0)  # past every interval: exactly zero, no running-sum residue
+
+
 # ------------------------------------------------------- 2. intensity laws
 
 
