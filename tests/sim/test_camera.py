@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings, strategies as st
 from scipy.spatial import ConvexHull
 
 from hilsim.config import ConfigError
@@ -414,3 +415,19 @@ def test_profile_dataclass_refuses_nonsense():
         profile(hfov=math.pi)
     with pytest.raises(ValueError):
         CameraLight(True, -1.0)
+
+
+# ---- the rays and the projection are one model -----------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(u=st.integers(0, 63), v=st.integers(0, 47), dist=st.floats(0.1, 50.0),
+       rpy=st.tuples(*[st.floats(-3.0, 3.0)] * 3), xyz=st.tuples(*[st.floats(-10.0, 10.0)] * 3),
+       vfov=st.one_of(st.none(), st.floats(0.3, 2.0)))
+def test_a_point_on_a_pixel_ray_projects_to_that_pixel_centre(u, v, dist, rpy, xyz, vfov):
+    cam = Camera(profile(width=64, height=48, hfov=math.radians(75), vfov=vfov))
+    pose = Pose(np.array(xyz), rot_zyx(*rpy))
+    d = cam.ray_directions[v, u]
+    assert abs(np.linalg.norm(d) - 1.0) < 1e-12
+    point = pose.position + rot_zyx(*rpy) @ (d * dist)
+    np.testing.assert_allclose(cam.project(point[None, :], pose)[0], [u + 0.5, v + 0.5], atol=1e-6)
