@@ -168,6 +168,8 @@ class Scheduler:
             self._begin(t, ev)
             result = ev.callback(t)
             if inspect.isawaitable(result):
+                if inspect.iscoroutine(result):
+                    result.close()
                 raise TypeError(f"event {ev.name!r} returned an awaitable; use run_async")
             self._reschedule(ev)
         if not self._stopping:
