@@ -22,7 +22,8 @@ class RayCaster(Protocol):
 
     n_triangles: int
 
-    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0, t_max: float = np.inf) -> tuple[F64, I64]:
+    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0,
+                  t_max: float | F64 = np.inf) -> tuple[F64, I64]:
         """First hit of each ray with distance in [t_min, t_max].
 
         origins: (n, 3) float [m]; dirs: (n, 3) float, unit length.
@@ -52,25 +53,29 @@ class EmbreeCaster:
             self._mesh = mesh_construction.TriangleMesh(self._scene, tris)
             self._tris = tris
 
-    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0, t_max: float = np.inf) -> tuple[F64, I64]:
-        o = np.asarray(origins, dtype=np.float64)
-        d = np.asarray(dirs, dtype=np.float64)
+    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0,
+                  t_max: float | F64 = np.inf) -> tuple[F64, I64]:
+        """See :class:`RayCaster`; ``t_max`` may also be an (n,) array (per-ray limit [m])."""
+        o = np.asarray(origins)
+        d = np.asarray(dirs)
         n = o.shape[0]
         t = np.full(n, np.inf)
         tri = np.full(n, -1, dtype=np.int64)
-        if n == 0 or self.n_triangles == 0 or t_max <= t_min:
+        if n == 0 or self.n_triangles == 0:
+            return t, tri
+        span = np.minimum(np.asarray(t_max, dtype=np.float64) - t_min, 3.0e38)
+        if np.all(span <= 0):
             return t, tri
         # Embree has no t_near in this binding: start the rays at t_min instead.
         start = o + d * t_min if t_min > 0.0 else o
-        span = np.float32(min(t_max - t_min, 3.0e38))
         res = self._scene.run(
             np.ascontiguousarray(start, dtype=np.float32),
             np.ascontiguousarray(d, dtype=np.float32),
-            dists=np.full(n, span, dtype=np.float32),
+            dists=np.ascontiguousarray(np.broadcast_to(np.maximum(span, 0.0), (n,)), dtype=np.float32),
             output=1,
         )
         prim = np.asarray(res["primID"], dtype=np.int64)
-        hit = (prim >= 0) & (np.asarray(res["geomID"]) >= 0)
+        hit = prim >= 0
         tri[hit] = prim[hit]
         t[hit] = np.asarray(res["tfar"], dtype=np.float64)[hit] + t_min
         return t, tri
