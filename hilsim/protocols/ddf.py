@@ -34,6 +34,7 @@ from __future__ import annotations
 import calendar
 import enum
 import math
+import numbers
 import struct
 from dataclasses import dataclass, fields
 from datetime import datetime, timedelta, timezone
@@ -292,29 +293,32 @@ _EPOCH: Final = datetime(1970, 1, 1, tzinfo=timezone.utc)
 def _check(kind: str, name: str, code: str, value: object) -> object:
     """Validate one value for its struct code; returns the value to pack."""
     where = f"{kind}.{name}"
-    if code == "i":
-        if not isinstance(value, int) or not _I32_MIN <= value <= _I32_MAX:
-            raise ValueError(f"{where}={value!r} is not an int32")
-    elif code in ("f", "d"):
-        if not isinstance(value, (int, float)):
+    if code in ("i", "Q"):  # numpy integers welcome
+        low, high = (_I32_MIN, _I32_MAX) if code == "i" else (0, 2**64 - 1)
+        if not isinstance(value, numbers.Integral) or not low <= int(value) <= high:
+            raise ValueError(f"{where}={value!r} is not an {'int32' if code == 'i' else 'uint64'}")
+        return int(value)
+    if code in ("f", "d"):  # numpy floats welcome
+        if not isinstance(value, numbers.Real):
             raise ValueError(f"{where}={value!r} is not a number")
-        if code == "f" and math.isfinite(value) and abs(value) > _F32_MAX:
+        number = float(value)
+        if code == "f" and math.isfinite(number) and abs(number) > _F32_MAX:
             raise ValueError(f"{where}={value!r} does not fit a float32")
-    elif name in ("version", "replies"):
+        return number
+    if name == "version":
         if not isinstance(value, bytes):
             raise ValueError(f"{where} must be bytes")
-    elif code.endswith("s"):
-        size = int(code[:-1])
-        if not isinstance(value, str):
-            raise ValueError(f"{where} must be str")
-        try:
-            raw = value.encode("ascii")
-        except UnicodeEncodeError:
-            raise ValueError(f"{where}={value!r} is not ASCII") from None
-        if b"\0" in raw or len(raw) >= size:
-            raise ValueError(f"{where} holds at most {size - 1} ASCII characters, no NUL")
-        return raw
-    return value
+        return value
+    size = int(code[:-1])  # an "Ns" text field
+    if not isinstance(value, str):
+        raise ValueError(f"{where} must be str")
+    try:
+        raw = value.encode("ascii")
+    except UnicodeEncodeError:
+        raise ValueError(f"{where}={value!r} is not ASCII") from None
+    if b"\0" in raw or len(raw) >= size:
+        raise ValueError(f"{where} holds at most {size - 1} ASCII characters, no NUL")
+    return raw
 
 
 def _text(raw: bytes) -> str:

@@ -248,6 +248,13 @@ def test_frame_time_from_calendar_when_frametime_means_something_else() -> None:
     assert decode_frame_header(bytes(data)).time == 42e-6
 
 
+def test_frame_header_accepts_numpy_scalars_from_the_sim() -> None:
+    h = FrameHeader(framenumber=np.int64(5), time=np.float64(T0), depth=np.float32(2.5), windowstart=np.int32(3))
+    back = decode_frame_header(encode_frame_header(h))
+    assert (back.framenumber, back.depth, back.windowstart) == (5, 2.5, 3)
+    assert type(back.framenumber) is int and type(back.depth) is float
+
+
 @pytest.mark.parametrize(
     "change",
     [{"time": -1.0}, {"time": float("nan")}, {"framenumber": -(2**31) - 1}, {"depth": 1e39},
