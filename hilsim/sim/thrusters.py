@@ -347,6 +347,9 @@ class ThrusterSet:
 
     def wrench(self) -> F64:
         """(6,) body wrench (Fx, Fy, Fz [N], Mx, My, Mz [N m]) at the current speeds."""
+        if len(self._groups) == 1:  # the common case, without the wrappers
+            p = self._groups[0][0]
+            return self.matrix @ np.interp(self._speed, p.curve_speed, p.curve_thrust)
         return self.matrix @ self.thrusts()
 
     def advance(self, dt: float, now: float) -> None:
@@ -357,9 +360,11 @@ class ThrusterSet:
         if self._alpha[0] != dt:
             self._alpha = (dt, [-math.expm1(-dt / tau) for tau in self._tau])
         # exact first-order lag; a zero target below the dead band stops the rotor
-        self._speed = [0.0 if (t == 0.0 and -d < s1 < d) else s1
-                       for s1, t, d in ((s0 + (t0 - s0) * a, t0, d0) for s0, t0, a, d0
-                                        in zip(self._speed, self._active, self._alpha[1], self._dead))]
+        speeds = []
+        for s0, t0, a, d0 in zip(self._speed, self._active, self._alpha[1], self._dead):
+            s1 = s0 + (t0 - s0) * a
+            speeds.append(0.0 if t0 == 0.0 and -d0 < s1 < d0 else s1)
+        self._speed = speeds
         self._thermal_dt += dt
         if self._thermal_dt >= _THERMAL_STEP:
             self._advance_thermal(self._thermal_dt)

@@ -49,13 +49,14 @@ import numpy as np
 
 from hilsim.config import Doc, check_keys, load_toml, quantity, require
 from hilsim.resources import find_profile
-from hilsim.sim.geometry import F64, wrap_angle
+from hilsim.sim.geometry import F64
 from hilsim.sim.state import VehicleState
 from hilsim.sim.thrusters import Thruster, ThrusterProfile, ThrusterSet, load_thruster_profile
 
 DOF_NAMES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
 MODELLED_DOFS = ("surge", "sway", "heave", "yaw")
 _ROTATIONAL = ("roll", "pitch", "yaw")
+_TWO_PI = 2.0 * math.pi
 
 
 def _bracket(grid: tuple[float, ...], x: float) -> tuple[int, int, float]:
@@ -115,6 +116,8 @@ class Current:
 
     def velocity(self, depth: float, time: float) -> tuple[float, float, float]:
         """NED current (north, east, down) [m/s] at ``depth`` [m] and ``time`` [s]."""
+        if len(self.times) == 1 and len(self.depths) == 1:
+            return self.velocities[0][0]
         ti, tj, tw = _bracket(self.times, time)
         di, dj, dw = _bracket(self.depths, depth)
         out = []
@@ -266,6 +269,7 @@ class Vehicle:
             return 1.0 / p.mass, p.linear_damping, p.quadratic_damping, p.constant_force
 
         self._c = tuple(coeffs(d) for d in MODELLED_DOFS)
+        self._held = any(d not in profile.dofs for d in MODELLED_DOFS)
 
     @staticmethod
     def from_file(path: Path | str) -> "Vehicle":
@@ -289,36 +293,38 @@ class Vehicle:
         mean body acceleration (du, dv, dw)/dt [m/s^2] over the step."""
         if not dt > 0:
             raise ValueError(f"dt must be > 0, got {dt}")
-        wr = wrench.tolist() if isinstance(wrench, np.ndarray) else list(wrench)
+        wr = wrench.tolist() if isinstance(wrench, np.ndarray) else wrench
         (iu, ku, qu, cu), (iv, kv, qv, cv), (iw, kw, qw, cw), (ir, kr, qr, cr) = self._c
         forces = ((wr[0] + cu) * iu, (wr[1] + cv) * iv, (wr[2] + cw) * iw, (wr[5] + cr) * ir)
         t0 = state.time
         x0, y0, z0 = state.position.tolist()
         roll, pitch, psi0 = state.attitude.tolist()
-        u0, v0, w0 = (a if i else 0.0 for a, i in zip(state.velocity.tolist(), (iu, iv, iw)))
-        nu0 = (u0, v0, w0, float(state.angular_velocity[2]) if ir else 0.0)
+        u0, v0, w0 = state.velocity.tolist()
+        r0 = float(state.angular_velocity[2])
+        if self._held:  # a held DOF keeps zero velocity
+            u0, v0, w0, r0 = (a if i else 0.0 for a, i in zip((u0, v0, w0, r0), (iu, iv, iw, ir)))
         if current is None or current.is_zero:
             # still water: the four velocity ODEs are independent of the pose
             u = _rk4_dof(u0, forces[0], ku * iu, qu * iu, dt)
             v = _rk4_dof(v0, forces[1], kv * iv, qv * iv, dt)
             w = _rk4_dof(w0, forces[2], kw * iw, qw * iw, dt)
-            r = _rk4_dof(nu0[3], forces[3], kr * ir, qr * ir, dt)
+            r = _rk4_dof(r0, forces[3], kr * ir, qr * ir, dt)
         else:
-            u, v, w, r = self._rk4_current(t0, z0, psi0, nu0, forces, current, dt)
-        # kinematics at the RK4 stages: stage velocities and headings
+            u, v, w, r = self._rk4_current(t0, z0, psi0, (u0, v0, w0, r0), forces, current, dt)
+        # kinematics with the same RK4 weights, at the stages' headings and velocities
         h, k6 = dt * 0.5, dt / 6.0
-        psis = (psi0, psi0 + h * nu0[3], psi0 + h * r[1], psi0 + dt * r[2])
-        cs = [math.cos(a) for a in psis]
-        sn = [math.sin(a) for a in psis]
-        ws = (1.0, 2.0, 2.0, 1.0)
-        stage = range(4)
-        ua, va = (u0, u[1], u[2], u[3]), (v0, v[1], v[2], v[3])
-        x = x0 + k6 * sum(ws[i] * (cs[i] * ua[i] - sn[i] * va[i]) for i in stage)
-        y = y0 + k6 * sum(ws[i] * (sn[i] * ua[i] + cs[i] * va[i]) for i in stage)
-        z = z0 + k6 * (w0 + 2.0 * w[1] + 2.0 * w[2] + w[3])
-        psi = psi0 + k6 * (nu0[3] + 2.0 * r[1] + 2.0 * r[2] + r[3])
+        psi_b, psi_c, psi_d = psi0 + h * r0, psi0 + h * r[1], psi0 + dt * r[2]
+        ca, cb, cc, cd = math.cos(psi0), math.cos(psi_b), math.cos(psi_c), math.cos(psi_d)
+        sa, sb, sc, sd = math.sin(psi0), math.sin(psi_b), math.sin(psi_c), math.sin(psi_d)
+        x = x0 + k6 * (ca * u0 - sa * v0 + 2.0 * (cb * u[1] - sb * v[1] + cc * u[2] - sc * v[2])
+                       + cd * u[3] - sd * v[3])
+        y = y0 + k6 * (sa * u0 + ca * v0 + 2.0 * (sb * u[1] + cb * v[1] + sc * u[2] + cc * v[2])
+                       + sd * u[3] + cd * v[3])
+        z = z0 + k6 * (w0 + 2.0 * (w[1] + w[2]) + w[3])
+        psi = psi0 + k6 * (r0 + 2.0 * (r[1] + r[2]) + r[3])
+        psi = (psi + math.pi) % _TWO_PI - math.pi
         inv = 1.0 / dt
-        buf = np.array((x, y, z, roll, pitch, wrap_angle(psi), u[0], v[0], w[0], 0.0, 0.0, r[0],
+        buf = np.array((x, y, z, roll, pitch, psi, u[0], v[0], w[0], 0.0, 0.0, r[0],
                         (u[0] - u0) * inv, (v[0] - v0) * inv, (w[0] - w0) * inv))
         return VehicleState(t0 + dt, buf[0:3], buf[3:6], buf[6:9], buf[9:12], buf[12:15])
 

@@ -1,0 +1,134 @@
+"""Physics throughput and real-time tick jitter. Prints figures; never pass/fail.
+
+1. Physics steps per second in fast mode: Cyclops (8 T200-like thrusters with
+   lag and watchdog, RK4 dynamics) at the default 200 Hz, called directly and
+   through the scheduler on a virtual clock; the real-time ratio is simulated
+   seconds per wall-clock second (goal >= 1000x).
+2. Real-time tick lateness p50/p99/max at 200 Hz and 1 kHz (the physics
+   running in the callback), with a busy-loop process on the other core
+   (bounded in time, killed at the end). Goal: p99 <= 1 ms at 200 Hz.
+
+Run: ``.venv/bin/python benchmarks/bench_dynamics.py`` (under a minute).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hilsim.runtime import RealTimeClock, Scheduler, VehicleLoop, VirtualClock  # noqa: E402
+from hilsim.sim.state import VehicleState  # noqa: E402
+from hilsim.sim.vehicle import Current, Vehicle, load_vehicle_profile  # noqa: E402
+
+PROFILE = load_vehicle_profile(ROOT / "devices" / "vehicles" / "cyclops.toml")
+RATE = 200.0
+
+
+def physics_direct(seconds: float, current: Current | None = None, rate: float = RATE) -> float:
+    """Steps/s of thrusters + vehicle called in a plain loop (commands at 10 Hz)."""
+    vehicle, thrusters = Vehicle(PROFILE), PROFILE.thruster_set()
+    state, dt = VehicleState(), 1.0 / rate
+    cmds = [0.6, 0.6, 0.6, 0.6, 0.3, 0.3, 0.3, 0.3]
+    n = int(seconds * rate)
+    every = max(1, int(rate / 10))
+    start = time.perf_counter()
+    for k in range(n):
+        if k % every == 0:
+            thrusters.command_all("normalized", cmds, state.time)
+        state = vehicle.step_with_thrusters(state, dt, thrusters, current)
+    return n / (time.perf_counter() - start)
+
+
+def vehicle_only(seconds: float) -> float:
+    """Steps/s of the rigid-body step alone (a fixed wrench, no thruster model)."""
+    vehicle, state, dt = Vehicle(PROFILE), VehicleState(), 1.0 / RATE
+    wrench = np.array([80.0, 10.0, 20.0, 0.0, 0.0, 5.0])
+    n = int(seconds * RATE)
+    start = time.perf_counter()
+    for _ in range(n):
+        state = vehicle.step(state, dt, wrench)
+    return n / (time.perf_counter() - start)
+
+
+def physics_scheduled(seconds: float) -> float:
+    """Steps/s of the same physics as a scheduler event on a virtual clock."""
+    thrusters = PROFILE.thruster_set()
+    loop = VehicleLoop(Vehicle(PROFILE), thrusters, VehicleState(), physics_rate=RATE)
+    sched = Scheduler(VirtualClock())
+    sched.add("control", 0.1, lambda t: thrusters.command_all("normalized", [0.6] * 4 + [0.3] * 4, t), priority=-1)
+    loop.attach(sched)
+    start = time.perf_counter()
+    sched.run(until=seconds)
+    return seconds * RATE / (time.perf_counter() - start)
+
+
+def start_busy(seconds: float) -> subprocess.Popen[bytes]:
+    """A busy-loop process pinned to the other core, ending by itself after ``seconds``."""
+    code = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) >= 2:
+        os.sched_setaffinity(proc.pid, {cpus[-1]})
+        os.sched_setaffinity(0, {cpus[0]})
+    return proc
+
+
+def jitter(rate: float, seconds: float, use_async: bool = False) -> tuple[np.ndarray, int, int]:
+    """Lateness samples [s], late count and skipped count of a physics event at ``rate``."""
+    thrusters = PROFILE.thruster_set()
+    clock = RealTimeClock()
+    loop = VehicleLoop(Vehicle(PROFILE), thrusters, VehicleState(), physics_rate=rate)
+    sched = Scheduler(clock, record_lateness=True)
+    sched.add("control", 0.1, lambda t: thrusters.command_all("normalized", [0.5] * 8, t), priority=-1)
+    ev = loop.attach(sched)[0]
+    clock.reset()
+    if use_async:
+        asyncio.run(sched.run_async(until=seconds))
+    else:
+        sched.run(until=seconds)
+    return np.array(ev.stats.lateness or [0.0]), ev.stats.late, ev.stats.skipped
+
+
+def main() -> None:
+    print(f"hilsim dynamics benchmark (python {sys.version.split()[0]}, {os.cpu_count()} cpus)")
+    physics_direct(2.0)  # warm up
+    direct = max(physics_direct(20.0) for _ in range(2))
+    with_current = physics_direct(10.0, Current.constant((0.2, 0.1, 0.0)))
+    scheduled = max(physics_scheduled(20.0) for _ in range(2))
+    body = max(vehicle_only(20.0) for _ in range(2))
+    coarse = max(physics_direct(40.0, rate=50.0) for _ in range(2))
+    print(f"physics, Cyclops + 8 thrusters, {RATE:g} Hz steps:")
+    print(f"  direct loop      {direct:9.0f} steps/s = {direct / RATE:6.0f}x real time"
+          f"   ({1e6 / direct:.1f} us/step)")
+    print(f"  with a current   {with_current:9.0f} steps/s = {with_current / RATE:6.0f}x real time")
+    print(f"  via scheduler    {scheduled:9.0f} steps/s = {scheduled / RATE:6.0f}x real time")
+    print(f"  vehicle.step only{body:9.0f} steps/s = {body / RATE:6.0f}x real time   ({1e6 / body:.1f} us/step)")
+    print(f"  at 50 Hz physics {coarse:9.0f} steps/s = {coarse / 50.0:6.0f}x real time"
+          "   (20 ms steps: RK4 error vs reference < 1e-7)")
+    print(f"  load average {os.getloadavg()[0]:.2f} (other processes share these cores)")
+    busy = start_busy(45.0)
+    try:
+        time.sleep(0.2)
+        print("real-time tick lateness, other core busy (physics in the callback):")
+        for rate, secs, use_async in ((200.0, 5.0, False), (1000.0, 5.0, False), (200.0, 4.0, True)):
+            lat, late, skipped = jitter(rate, secs, use_async)
+            p50, p99 = np.percentile(lat, [50, 99]) * 1e3
+            mode = "asyncio" if use_async else "sync"
+            print(f"  {rate:6.0f} Hz {mode:7s} ticks {lat.size:5d}  p50 {p50:6.3f} ms  p99 {p99:6.3f} ms  "
+                  f"max {lat.max() * 1e3:6.3f} ms  late {late}  skipped {skipped}")
+    finally:
+        busy.kill()
+        busy.wait()
+
+
+if __name__ == "__main__":
+    main()
