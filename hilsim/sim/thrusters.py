@@ -1,38 +1,34 @@
 """Thrusters: ESC + motor + propeller models, a placed set, its wrench and the allocation.
 
-One thruster's state is its rotor speed, written as the fraction
-``s = omega / max_speed`` of the profile's full speed at its nominal voltage.
-A command sets a target speed ``s*`` (how, depends on the command kind, as the
-wire protocols deliver it); the speed follows with a first-order lag
-``ds/dt = (s* - s) / time_constant``, advanced exactly (``1 - exp(-dt/tau)``),
-so it is stable at any step. Thrust is the profile's tabulated curve at ``s``
-(asymmetric forward/reverse, interpolated linearly); saturation is the table's
-end (``|s| <= 1``) and, for open-loop kinds, the supply voltage.
+A thruster's state is its rotor speed as a fraction ``s = omega / max_speed``
+of full speed at the profile's nominal voltage. A command sets a target
+``s*``; the speed follows with a first-order lag advanced exactly
+(``1 - exp(-dt / time_constant)``, stable at any step). Thrust is the
+profile's tabulated, asymmetric curve at ``s``; saturation is the table's end
+(``|s| <= 1``) and, for open-loop kinds, the supply voltage.
 
-Command kinds (``value`` in the unit given; ``V`` supply, ``Vn`` nominal voltage):
+Command kinds, as the protocols deliver them (``V`` supply, ``Vn`` nominal):
 
-- ``"normalized"`` [1] in [-1, 1]: power fraction as PWM (1100..1900 us -> -1..1),
-  DroneCAN esc.RawCommand (int14 / 8191) and VideoRay VRCSR (float power) give
-  it. Open loop, like a duty: ``s* = value * V / Vn``.
-- ``"duty"`` [1] in [-1, 1]: VESC SET_DUTY (int32 / 1e5). Same mapping.
+- ``"normalized"`` [1] in [-1, 1]: PWM (1100..1900 us -> -1..1), DroneCAN
+  esc.RawCommand (int14 / 8191), VRCSR float power. Open loop like a duty:
+  ``s* = value * V / Vn``.
+- ``"duty"`` [1] in [-1, 1]: VESC SET_DUTY (int32 / 1e5); same mapping.
 - ``"rpm"`` [rev/min] mechanical, closed loop: ``s* = rpm / max_rpm``.
 - ``"erpm"`` [rev/min] electrical (VESC SET_RPM): ``rpm = erpm / pole_pairs``.
-- ``"current"`` [A] motor current (VESC SET_CURRENT / 1e3), closed-loop torque.
-  The propeller's load torque grows as ``omega^2``, so at steady state
-  ``s* = sign(I) sqrt(|I| / max_current)`` (thrust proportional to current).
+- ``"current"`` [A] motor current (VESC SET_CURRENT / 1e3), closed-loop
+  torque; the propeller's load torque grows as ``omega^2``, so at steady
+  state ``s* = sign(I) sqrt(|I| / max_current)`` (thrust ~ current).
 
-Dead band: a command whose fraction of full scale (value, rpm / max_rpm or
-I / max_current) is below ``dead_band`` holds the motor stopped; once the
-target is zero and ``|s|`` falls below the dead band the ESC stops driving and
-the rotor is taken as stopped. Watchdog: a thruster whose last command is
-older than ``watchdog_timeout`` [s] gets a zero target (and ``timed_out``), as
-real ESCs do; it restarts with the next command.
+Dead band: a command below ``dead_band`` of full scale (value, rpm / max_rpm
+or I / max_current) holds the motor stopped; with a zero target the rotor is
+taken as stopped once ``|s|`` falls below the dead band. Watchdog: a command
+older than ``watchdog_timeout`` [s] is replaced by a zero target
+(``timed_out``) until the next command, as real ESCs do.
 
-Telemetry (what an ESC reports) is derived from the rotor state, never echoed
-from the command: rpm, a motor-current estimate ``max_current * s|s|`` (the
-steady propeller load), the duty that holds ``s`` at the supply voltage, the
-input current ``|I_motor * duty|``, the sagging bus voltage and a first-order
-winding temperature. Profiles are read by :func:`load_thruster_profile`.
+Telemetry is derived from the rotor state, never echoed from the command:
+rpm, motor current ``max_current * s|s|`` (the steady propeller load), the
+duty that holds ``s``, input current ``|I_motor * duty|``, the sagging bus
+voltage and a first-order winding temperature.
 """
 
 from __future__ import annotations
@@ -107,10 +103,10 @@ def load_thruster_profile(path: Path | str) -> ThrusterProfile:
     check_keys(doc, c, ("speed", "thrust"), "curve")
     sources = {k: str(t[k]["source"]) for k in keys[2:] if isinstance(t.get(k), dict) and "source" in t[k]}
 
-    def q(key: str, unit: str, default: float | None = None, lo: float = 0.0) -> float:
+    def q(key: str, unit: str, default: float | None = None, zero_ok: bool = False) -> float:
         v = float(quantity(doc, t, key, unit, "thruster", default=default))
-        if not v > lo:
-            raise doc.error(f"thruster.{key}", f"must be > {lo}, got {v}")
+        if v < 0 or (v == 0 and not zero_ok):
+            raise doc.error(f"thruster.{key}", f"must be {'>=' if zero_ok else '>'} 0, got {v}")
         return v
 
     speed = np.asarray(quantity(doc, c, "speed", "1", "curve"), dtype=float)
@@ -132,7 +128,7 @@ def load_thruster_profile(path: Path | str) -> ThrusterProfile:
         pole_pairs=int(q("pole_pairs", "1", 7.0)), winding_resistance=q("winding_resistance", "ohm", 0.1),
         thermal_resistance=q("thermal_resistance", "K/W", 1.5),
         thermal_time_constant=q("thermal_time_constant", "s", 60.0),
-        source_resistance=q("source_resistance", "ohm", 1e-9, lo=-1e-12), sources=sources)
+        source_resistance=q("source_resistance", "ohm", 0.0, zero_ok=True), sources=sources)
 
 
 @dataclass(frozen=True)
@@ -204,9 +200,10 @@ def allocate_wrench(matrix: F64, wrench: F64, lower: F64, upper: F64,
     """Thrusts f (n,) [N] with ``matrix @ f`` equal to ``wrench`` on the rows ``dofs``.
 
     matrix (6, n) thrust -> wrench; wrench (6,) [N, N m]; lower, upper (n,) [N]
-    thrust limits (lower <= 0 <= upper). If the minimum-norm solution
-    ``pinv(B) w`` is within the limits it is returned (the wrench is reproduced
-    exactly). Otherwise the direction of the wrench is kept and its size is
+    thrust limits (lower <= 0 <= upper). A part of the wrench that no thrust
+    combination can produce is dropped first (least-squares projection). If
+    the minimum-norm solution ``pinv(B) w`` is within the limits it is
+    returned (the wrench is reproduced exactly). Otherwise the direction of the wrench is kept and its size is
     the largest reachable: a linear programme maximises ``a`` in [0, 1]
     subject to ``B f = a w`` and the limits, then a second one finds, at that
     ``a``, the thrusts of least total magnitude (no thrusters fighting). The
@@ -216,19 +213,17 @@ def allocate_wrench(matrix: F64, wrench: F64, lower: F64, upper: F64,
 
     rows = list(dofs)
     b = matrix[rows]
-    w = np.asarray(wrench, dtype=float)[rows]
     n = b.shape[1]
-    f = np.linalg.pinv(b) @ w
+    f = np.linalg.pinv(b) @ np.asarray(wrench, dtype=float)[rows]
+    w = b @ f  # the reachable part of the request
     tol = 1e-9 * max(1.0, float(np.max(upper)))
     if np.all(f <= upper + tol) and np.all(f >= lower - tol):
         f = np.clip(f, lower, upper)
         return Allocation(f, matrix @ f, 1.0, False)
     # stage 1: variables (f, a); maximise a subject to b f - a w = 0
-    a_eq = np.hstack([b, -w[:, None]])
-    bounds = list(zip(lower.tolist(), upper.tolist())) + [(0.0, 1.0)]
-    cost = np.zeros(n + 1)
-    cost[-1] = -1.0
-    res = linprog(cost, A_eq=a_eq, b_eq=np.zeros(len(rows)), bounds=bounds, method="highs")
+    limits = list(zip(lower.tolist(), upper.tolist()))
+    res = linprog(np.r_[np.zeros(n), -1.0], A_eq=np.hstack([b, -w[:, None]]), b_eq=np.zeros(len(rows)),
+                  bounds=limits + [(0.0, 1.0)], method="highs")
     if res.status != 0:
         raise RuntimeError(f"allocation LP failed: {res.message}")
     scale = float(res.x[-1]) * (1.0 - 1e-9)
@@ -237,7 +232,7 @@ def allocate_wrench(matrix: F64, wrench: F64, lower: F64, upper: F64,
     a_ub = np.block([[eye, -eye], [-eye, -eye]])
     res2 = linprog(np.concatenate([np.zeros(n), np.ones(n)]), A_ub=a_ub, b_ub=np.zeros(2 * n),
                    A_eq=np.hstack([b, np.zeros_like(b)]), b_eq=scale * w,
-                   bounds=list(zip(lower.tolist(), upper.tolist())) + [(0.0, None)] * n,
+                   bounds=limits + [(0.0, None)] * n,
                    method="highs")
     f = np.clip(res2.x[:n] if res2.status == 0 else res.x[:n], lower, upper)
     return Allocation(f, matrix @ f, scale, True)
@@ -248,7 +243,9 @@ class ThrusterSet:
 
     Device code calls :meth:`command` and :meth:`telemetry`; the physics tick
     calls :meth:`wrench` then :meth:`advance`. Times ``now`` [s] are the
-    simulation clock's.
+    simulation clock's. ``matrix`` (6, n) maps thrusts [N] to the body wrench;
+    ``max_thrust`` / ``min_thrust`` (n,) [N] are the reachable thrusts at the
+    supply voltage (the allocation's limits).
     """
 
     def __init__(self, thrusters: Sequence[Thruster], supply_voltage: float | None = None,
@@ -268,15 +265,14 @@ class ThrusterSet:
         # (6, n) map from thrusts [N] to the body wrench (Fx, Fy, Fz, Mx, My, Mz)
         self.matrix: F64 = np.vstack([dirs.T, np.cross(pos, dirs).T])
         profiles = [t.profile for t in self.thrusters]
-        self._groups = [(p, np.array([i for i, q in enumerate(profiles) if q is p]))
-                        for p in dict.fromkeys(profiles)]
+        self._profiles = profiles
+        self._shared = profiles[0] if all(p is profiles[0] for p in profiles) else None
         # per-thruster state as Python lists: cheaper than numpy for n ~ 8
         self._tau = [p.time_constant for p in profiles]
         self._timeout = [p.watchdog_timeout for p in profiles]
         self._dead = [p.dead_band for p in profiles]
         self._speed = [0.0] * n
-        self._target = [0.0] * n     # commanded target speed fraction
-        self._active = [0.0] * n     # target in force (0 once the watchdog has tripped)
+        self._target = [0.0] * n     # target speed fraction (0 once the watchdog has tripped)
         self._cmd_time = [-math.inf] * n
         self._timed_out = [True] * n
         self._expiry = math.inf      # [s] earliest time a live command goes stale
@@ -303,7 +299,7 @@ class ThrusterSet:
     def command(self, index: int, kind: str, value: float, now: float) -> None:
         """Command thruster ``index`` with ``value`` of ``kind`` at time ``now`` [s]."""
         p = self.thrusters[index].profile
-        self._target[index] = self._active[index] = target_speed(p, kind, float(value), self.supply_voltage)
+        self._target[index] = target_speed(p, kind, float(value), self.supply_voltage)
         self._cmd_time[index] = now
         self._timed_out[index] = False
         self._expiry = min(self._expiry, now + self._timeout[index])
@@ -338,17 +334,14 @@ class ThrusterSet:
 
     def thrusts(self) -> F64:
         """(n,) [N] thrust of each thruster at the current rotor speeds."""
-        if len(self._groups) == 1:
-            return self._groups[0][0].thrust(self._speed)
-        out = np.empty(len(self))
-        for p, idx in self._groups:
-            out[idx] = p.thrust(np.array(self._speed)[idx])
-        return out
+        if self._shared is not None:
+            return self._shared.thrust(self._speed)
+        return np.array([float(p.thrust(s)) for p, s in zip(self._profiles, self._speed)])
 
     def wrench(self) -> F64:
         """(6,) body wrench (Fx, Fy, Fz [N], Mx, My, Mz [N m]) at the current speeds."""
-        if len(self._groups) == 1:  # the common case, without the wrappers
-            p = self._groups[0][0]
+        if self._shared is not None:  # the common case, without the wrappers
+            p = self._shared
             return self.matrix @ np.interp(self._speed, p.curve_speed, p.curve_thrust)
         return self.matrix @ self.thrusts()
 
@@ -361,7 +354,7 @@ class ThrusterSet:
             self._alpha = (dt, [-math.expm1(-dt / tau) for tau in self._tau])
         # exact first-order lag; a zero target below the dead band stops the rotor
         speeds = []
-        for s0, t0, a, d0 in zip(self._speed, self._active, self._alpha[1], self._dead):
+        for s0, t0, a, d0 in zip(self._speed, self._target, self._alpha[1], self._dead):
             s1 = s0 + (t0 - s0) * a
             speeds.append(0.0 if t0 == 0.0 and -d0 < s1 < d0 else s1)
         self._speed = speeds
@@ -376,15 +369,13 @@ class ThrusterSet:
         for i, (tc, to) in enumerate(zip(self._cmd_time, self._timeout)):
             if now - tc > to:
                 self._timed_out[i] = True
-                self._active[i] = 0.0
+                self._target[i] = 0.0
             else:
                 expiry = min(expiry, tc + to)
         self._expiry = expiry
 
     def _advance_thermal(self, dt: float) -> None:
-        for k, t in enumerate(self.thrusters):
-            p = t.profile
-            s = self._speed[k]
+        for k, (p, s) in enumerate(zip(self._profiles, self._speed)):
             loss = (p.max_current * s * s) ** 2 * p.winding_resistance  # [W] copper loss
             steady = self.water_temperature + p.thermal_resistance * loss
             self._temp[k] += (steady - self._temp[k]) * -math.expm1(-dt / p.thermal_time_constant)

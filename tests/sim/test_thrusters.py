@@ -198,3 +198,11 @@ def test_allocated_commands_produce_the_allocated_thrusts(cyclops_set: ThrusterS
         cmds = [ts.command_for_thrust(i, f, kind) for i, f in enumerate(a.thrusts)]
         settle(ts, 1.0, values=cmds, kind=kind)
         np.testing.assert_allclose(ts.wrench(), wrench, atol=0.05)
+
+
+def test_allocation_over_a_subset_of_dofs_leaves_the_others_free(cyclops_set: ThrusterSet) -> None:
+    ts = cyclops_set
+    a = ts.allocate([50.0, -10.0, 999.0, 0.0, 0.0, 5.0], dofs=(0, 1, 5))  # heave not controlled
+    assert not a.saturated
+    np.testing.assert_allclose(a.wrench[[0, 1, 5]], [50.0, -10.0, 5.0], atol=1e-9)
+    np.testing.assert_allclose(a.thrusts[4:], 0.0, atol=1e-12)  # minimum norm: verticals idle
