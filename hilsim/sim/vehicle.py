@@ -31,7 +31,10 @@ yaw) stays stable at 50 ms too (lambda dt about 1). Semi-implicit Euler would
 be unconditionally stable but only first order: at 50 ms its error is about
 ``lambda dt / 2`` of a transient (several percent), which would break the
 agreement of 1 ms and 50 ms runs. RK4 is evaluated in plain Python floats
-(eight scalars: faster than numpy calls on arrays this small).
+(eight scalars: faster than numpy calls on arrays this small). In still water
+the velocity equations do not depend on the pose, so each DOF's RK4 stages
+are computed alone and the position and heading are integrated from those
+same stages with the RK4 weights: the same scheme as RK4 on the full state.
 
 Profiles (``devices/vehicles/*.toml``) are read by :func:`load_vehicle_profile`;
 another vehicle is another file. Water currents are :class:`Current`.
