@@ -190,46 +190,51 @@ def _weighted_count(index: I64, weights: F64, size: int) -> F64:
 def spread_deposit(u: F64, width: F64, energy: F64, beam: I64, n_samples: int, n_beams: int) -> F64:
     """Accumulate echoes spread uniformly over range intervals into cells.
 
-    u: (h,) float, hit range in bin units (``(R - range_min) / dr``);
-    width: (h,) float >= 0, interval width [bins] centred on ``u``;
+    u: (h,) float in [0, n_samples), hit range in bin units (``(R - range_min) / dr``);
+    width: (h,) finite float >= 0, interval width [bins] centred on ``u``;
     energy: (h,) float, echo of each ray; beam: (h,) int beam index.
     Returns (n_samples, n_beams) float: each ray's energy split across the bins
-    its interval overlaps, in proportion to the overlap; parts outside the
-    window are lost. O(h + cells): the partial first and last bins are
-    deposited directly and fully covered interior bins through a running sum
-    (cells where no interval is open are exactly zero).
+    its interval overlaps, in proportion to the overlap (all of it in one bin
+    for a zero width); parts outside the window are lost. O(h + cells): the
+    partial first and last bins are deposited directly and fully covered
+    interior bins through a running sum (cells where no interval is open are
+    exactly zero).
     """
     ns, nb = n_samples, n_beams
-    rows = ns + 2  # one pad bin either side, index shifted by +1
-    a = u - 0.5 * width
-    b = u + 0.5 * width
-    length = b - a
-    a_c = np.clip(a, -1.0, ns + 1.0)
-    b_c = np.clip(b, -1.0, ns + 1.0)
-    i0 = np.clip(np.floor(a_c).astype(np.int64), -1, ns)
-    i1 = np.clip(np.floor(b_c).astype(np.int64), -1, ns)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        density = np.where(length > 0.0, energy / length, 0.0)
+    # pad bins on both sides take what falls outside the window; indices are shifted by +pad
+    pad = int(np.ceil(0.5 * float(width.max(initial=0.0)))) + 1
+    rows = ns + 2 * pad
+    half = 0.5 * width
+    a = u - half
+    a += pad
+    b = u + half
+    b += pad
+    i0 = a.astype(np.int64)  # floor: a >= 1
+    i1 = b.astype(np.int64)
     single = i1 == i0
-    first = np.where(single, np.where(length > 0.0, density * (b_c - a_c), energy),
-                     density * (i0 + 1 - a_c))
-    total: F64 = _weighted_count((i0 + 1) * nb + beam, first, rows * nb)
-    multi = ~single
-    if multi.any():
-        last = density[multi] * (b_c[multi] - i1[multi])
-        total += _weighted_count((i1[multi] + 1) * nb + beam[multi], last, rows * nb)
-        inner = multi & (i1 > i0 + 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        density = energy / width  # inf/nan only where width == 0, which is always single
+        lead = i0 + 1 - a
+        lead *= density
+    first = np.where(single, energy, lead)
+    total: F64 = _weighted_count(i0 * nb + beam, first, rows * nb)
+    multi = np.flatnonzero(~single)
+    if multi.size:
+        m0, m1, mb, md = i0[multi], i1[multi], beam[multi], density[multi]
+        last = md * (b[multi] - m1)
+        total += _weighted_count(m1 * nb + mb, last, rows * nb)
+        inner = m1 > m0 + 1
         if inner.any():
-            bi, s = beam[inner], density[inner]
-            start = (i0[inner] + 2) * nb + bi
-            stop = (i1[inner] + 1) * nb + bi
-            size = (rows + 1) * nb
-            run = _weighted_count(start, s, size) - _weighted_count(stop, s, size)
+            bi, dens = mb[inner], md[inner]
+            start = (m0[inner] + 1) * nb + bi
+            stop = m1[inner] * nb + bi
+            size = rows * nb
+            run = _weighted_count(start, dens, size) - _weighted_count(stop, dens, size)
             cnt = np.bincount(start, minlength=size) - np.bincount(stop, minlength=size)
-            run = np.cumsum(run.reshape(rows + 1, nb), axis=0)
-            open_ = np.cumsum(cnt.reshape(rows + 1, nb), axis=0) > 0
-            total += np.where(open_, run, 0.0)[:rows].ravel()
-    return total.reshape(rows, nb)[1:ns + 1]
+            run = np.cumsum(run.reshape(rows, nb), axis=0)
+            is_open = np.cumsum(cnt.reshape(rows, nb), axis=0) > 0
+            total += np.where(is_open, run, 0.0).ravel()
+    return total.reshape(rows, nb)[pad:pad + ns]
 
 
 class ImagingSonar:
@@ -307,9 +312,13 @@ class ImagingSonar:
         if s.spread:
             n_dot_dd = n0 * ddphi_s[:, 0] + n1 * ddphi_s[:, 1] + n2 * ddphi_s[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                width = np.abs(r * n_dot_dd / n_dot_d) * (dphi / dr)
-            # grazing incidence (n . d -> 0) is capped; misses get no width
-            width = np.where(hit, np.minimum(np.nan_to_num(width, nan=s.spread_max_bins), s.spread_max_bins), 0.0)
+                width = r * n_dot_dd
+                width /= n_dot_d
+            np.abs(width, out=width)
+            width *= dphi / dr
+            # grazing incidence (n . d -> 0, inf or nan) is capped; misses get no width
+            np.fmin(width, s.spread_max_bins, out=width)
+            width[~hit] = 0.0
             intensity = spread_deposit(u, width, energy, beam_all, ns, nb)
         else:
             cell = u.astype(np.int64) * nb + beam_all
