@@ -30,12 +30,14 @@ def _check_triangles(triangles: F64) -> F64:
     return tris
 
 
-def _check_rays(origins: F64, dirs: F64) -> tuple[F64, F64]:
+def _check_rays(origins: F64, dirs: F64, t_max: float | F64) -> tuple[F64, F64, F64]:
+    """Rays as float64 (n, 3) arrays and ``t_max`` as an (n,) array."""
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(dirs, dtype=np.float64)
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
         raise ValueError(f"origins and dirs must both be (n, 3), got {o.shape} and {d.shape}")
-    return o, d
+    limit = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (o.shape[0],))
+    return o, d, limit
 
 
 class ReferenceCaster:
@@ -74,19 +76,21 @@ class ReferenceCaster:
         self._n_p1 = np.einsum("ij,ij->i", self._normal, self._p1)
         self._valid = np.einsum("ij,ij->i", self._normal, self._normal) > 0.0
 
-    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0, t_max: float = np.inf) -> tuple[F64, I64]:
+    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0,
+                  t_max: float | F64 = np.inf) -> tuple[F64, I64]:
         """First hit of each ray with distance in [t_min, t_max].
 
-        origins: (n, 3) float [m]; dirs: (n, 3) float, unit length.
+        origins: (n, 3) float [m]; dirs: (n, 3) float, unit length; t_max: a
+        float or an (n,) array (per-ray limit) [m].
         Returns t (n,) float [m] (inf on a miss) and tri (n,) int (-1 on a miss).
         Among equal distances the lowest triangle index wins.
         """
-        o, d = _check_rays(origins, dirs)
+        o, d, limit = _check_rays(origins, dirs, t_max)
         n = o.shape[0]
         t_out = np.full(n, np.inf)
         tri_out = np.full(n, -1, dtype=np.int64)
         m = self.n_triangles
-        if n == 0 or m == 0 or not t_max >= t_min:
+        if n == 0 or m == 0 or not np.any(limit >= t_min):
             return t_out, tri_out
         tri_chunk = min(m, self.chunk_pairs)
         ray_chunk = max(1, self.chunk_pairs // tri_chunk)
@@ -96,7 +100,7 @@ class ReferenceCaster:
             best_i = np.full(r1 - r0, -1, dtype=np.int64)
             for k0 in range(0, m, tri_chunk):
                 k1 = min(m, k0 + tri_chunk)
-                t, idx = self._chunk(o[r0:r1], d[r0:r1], k0, k1, t_min, t_max)
+                t, idx = self._chunk(o[r0:r1], d[r0:r1], k0, k1, t_min, limit[r0:r1])
                 better = t < best_t
                 best_t[better] = t[better]
                 best_i[better] = idx[better]
@@ -104,15 +108,15 @@ class ReferenceCaster:
             tri_out[r0:r1] = best_i
         return t_out, tri_out
 
-    def _chunk(self, o: F64, d: F64, k0: int, k1: int, t_min: float, t_max: float) -> tuple[F64, I64]:
-        """Rays (r, 3) against triangles k0:k1; nearest valid hit per ray."""
+    def _chunk(self, o: F64, d: F64, k0: int, k1: int, t_min: float, t_max: F64) -> tuple[F64, I64]:
+        """Rays (r, 3) with limits t_max (r,) against triangles k0:k1; nearest valid hit per ray."""
         nrm = self._normal[k0:k1]
         # eq. 4: t = N . (p1 - o) / (N . v), as (r, k) arrays
         n_dot_v = d @ nrm.T
         n_dot_o = o @ nrm.T
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (self._n_p1[k0:k1][None, :] - n_dot_o) / n_dot_v
-        ok = np.isfinite(t) & (t >= t_min) & (t <= t_max) & self._valid[k0:k1][None, :]
+        ok = np.isfinite(t) & (t >= t_min) & (t <= t_max[:, None]) & self._valid[k0:k1][None, :]
         # the intersection point p = o + t v, one (r, k) array per component
         px = o[:, 0:1] + t * d[:, 0:1]
         py = o[:, 1:2] + t * d[:, 1:2]
@@ -159,17 +163,19 @@ class TrimeshCaster:
             )
             self._engine = RayMeshIntersector(mesh)
 
-    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0, t_max: float = np.inf) -> tuple[F64, I64]:
+    def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0,
+                  t_max: float | F64 = np.inf) -> tuple[F64, I64]:
         """First hit of each ray with distance in [t_min, t_max].
 
-        origins: (n, 3) float [m]; dirs: (n, 3) float, unit length.
+        origins: (n, 3) float [m]; dirs: (n, 3) float, unit length; t_max: a
+        float or an (n,) array (per-ray limit) [m].
         Returns t (n,) float [m] (inf on a miss) and tri (n,) int (-1 on a miss).
         """
-        o, d = _check_rays(origins, dirs)
+        o, d, limit = _check_rays(origins, dirs, t_max)
         n = o.shape[0]
         t_out = np.full(n, np.inf)
         tri_out = np.full(n, -1, dtype=np.int64)
-        if n == 0 or self._engine is None or not t_max >= t_min:
+        if n == 0 or self._engine is None or not np.any(limit >= t_min):
             return t_out, tri_out
         o = np.ascontiguousarray(o)
         # every hit along each ray, then the nearest one inside the window
@@ -179,7 +185,7 @@ class TrimeshCaster:
         if tri.size == 0:
             return t_out, tri_out
         t = np.einsum("ij,ij->i", np.asarray(loc) - o[ray], d[ray])
-        keep = (t >= t_min) & (t <= t_max)
+        keep = (t >= t_min) & (t <= limit[ray])
         tri, ray, t = tri[keep], ray[keep], t[keep]
         # sort by (ray, t); the first row of each ray is its nearest hit
         order = np.lexsort((tri, t, ray))

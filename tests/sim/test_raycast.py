@@ -175,6 +175,22 @@ def test_backends_agree_on_random_boxes_with_window(seed: int) -> None:
     assert np.any(hit & (t_ref > full_t + 1e-6))
 
 
+def test_backends_agree_with_per_ray_limits() -> None:
+    rng = np.random.default_rng(8)
+    tris = random_boxes(rng, 8)
+    o, d = aimed_rays(tris, 1500, rng, spread=8.0)
+    first, _ = ReferenceCaster(tris).intersect(o, d)
+    assert np.all(np.isfinite(first))  # every ray is aimed at a triangle
+    # each ray's limit is 2 % or more away from its first hit: short of it (a miss) or past it (that hit)
+    factor = np.where(rng.uniform(size=len(o)) < 0.5, rng.uniform(0.3, 0.98, len(o)), rng.uniform(1.02, 2.0, len(o)))
+    limit = first * factor
+    results = {cls.__name__: cls(tris).intersect(o, d, 0.0, limit) for cls in casters()}
+    assert_agree(results)
+    t_ref, tri_ref = results["ReferenceCaster"]
+    np.testing.assert_array_equal(tri_ref >= 0, factor > 1.0)
+    np.testing.assert_allclose(t_ref[factor > 1.0], first[factor > 1.0], rtol=1e-12)
+
+
 def test_world_normals_agree_with_every_backend() -> None:
     rng = np.random.default_rng(5)
     tris = random_boxes(rng, 6)
