@@ -34,7 +34,11 @@ range interval ``R +- |dR/dphi| dphi / 2`` with ``dR/dphi = -R (n . dd/dphi) / (
 (exact to first order for a plane). The echo is spread uniformly over that
 interval and split across range bins by overlap; the width is capped at
 ``spread_max_bins`` (grazing incidence). ``spread=False`` is the paper's
-literal one-bin deposit.
+literal one-bin deposit. The gaps appear wherever ``|dR/dphi| dphi`` exceeds a
+range bin: at grazing incidence and long range (a floor seen by a sonar
+tilted 10 deg down from 0.5 m, far half of the window), or with range bins
+finer than the ray spacing. A floor 1.2 m below a sonar tilted 45 deg down
+is sampled every < 1 mm by 1000 rays and shows none with 9.8 mm bins.
 
 Gain (see :func:`fixed_gain_levels`): ``"paper"`` maps the brightest cell to
 255 and the others *linearly* in proportion to it; ``"fixed"`` applies a gain
@@ -85,6 +89,8 @@ class SonarFrame:
     n_rays: rays cast; n_hits: rays with a hit inside the window.
     time: [s] sample time if known; frame_index: the index the RNG was keyed with.
     settings: the settings used.
+    gain_db_at_range: (n_samples,) float [dB], gain_db + TVG applied per range
+        row in "fixed" mode (empty in "paper" mode).
     """
 
     intensity: F64
@@ -294,8 +300,8 @@ class ImagingSonar:
         hit = hits.tri >= 0
         n_hits = int(np.count_nonzero(hit))
 
-        # Work on every ray in the sensor frame, component by component (fast
-        # contiguous 1-D ops, no gathers). A miss has t = inf and a zero
+        # Work on every ray in the sensor frame, column by column (1-D ops,
+        # no gathers of the hits). A miss has t = inf and a zero
         # normal, so its echo comes out exactly 0.
         nrm = hits.normal @ rot  # (n, 3) normals in the sensor frame
         n0, n1, n2 = nrm[:, 0], nrm[:, 1], nrm[:, 2]

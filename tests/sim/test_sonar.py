@@ -97,6 +97,28 @@ def down_component(theta: float, phi: float, tilt: float) -> float:
     return math.sin(tilt) * x + math.cos(tilt) * z
 
 
+# ------------------------------------------------------------ conventions
+
+
+def test_ray_layout_and_beam_order(hf: SonarProfile) -> None:
+    son = ImagingSonar(hf, quiet(hf, elevation_rays=7))
+    dirs, beam = son.rays()
+    th = np.repeat(beam_azimuths(hf), 7)
+    ph = np.tile(elevations(hf, 7), 96)
+    want = np.stack([np.cos(ph) * np.cos(th), np.cos(ph) * np.sin(th), -np.sin(ph)], axis=1)
+    np.testing.assert_allclose(dirs, want, atol=1e-15)
+    np.testing.assert_array_equal(beam, np.repeat(np.arange(96), 7))
+    assert np.all(np.diff(son.azimuths) > 0) and son.azimuths[0] < 0  # beam 0 = port
+    # a post 10 deg to starboard (+y) lights only the beams around +10 deg
+    post = trimesh.creation.box(extents=(0.1, 0.1, 4.0))
+    post.apply_translation((3.0 * math.cos(math.radians(10)), 3.0 * math.sin(math.radians(10)), 0.0))
+    frame = son.render(World([WorldObject("post", post, CONCRETE)]), Pose())
+    lit = np.flatnonzero(frame.intensity.sum(axis=0) > 0)
+    assert lit.size > 0
+    assert np.all(np.abs(np.degrees(frame.azimuths[lit]) - 10.0) < 1.5)
+    assert np.all(lit > 48)
+
+
 # ----------------------------------------------------------- 1. footprint
 
 
