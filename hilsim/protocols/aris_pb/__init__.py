@@ -1,0 +1,12 @@
+"""Generated protobuf modules for the ARIS contract in ``protocols/aris/*.proto``.
+
+Do not edit the ``*_pb2.py`` / ``*_pb2.pyi`` files: regenerate them after a
+change to a .proto file with protoc from grpcio-tools (any venv; the runtime
+``protobuf`` must be at least the version named in the generated files)::
+
+    python -m grpc_tools.protoc -Iprotocols/aris --python_out=hilsim/protocols/aris_pb \\
+        --pyi_out=hilsim/protocols/aris_pb protocols/aris/*.proto
+
+tests/protocols/test_aris.py checks that these modules match the .proto files
+when grpc_tools is installed.
+"""
