@@ -1,0 +1,256 @@
+"""Blueprint Subsea Oculus M-series sonar: UDP status + TCP fire/ping channel.
+
+See ``protocols/oculus.md``. The device
+
+* sends the 142-byte status datagram every ``status_interval_s`` to
+  ``ctx.broadcast:status_port`` (loopback unless the scenario or the command
+  line names a LAN address), with the address clients must connect to in
+  ``ipAddr`` (``status_ip``, default the bind address, 127.0.0.1 for a
+  wildcard bind);
+* serves the TCP data channel (``port``, 52100 on a real sonar): every
+  client fires SimpleFire v1 or v2 messages and gets SimplePingResults of the
+  same version at the fired ping rate, rendered with the fired mode (LF ->
+  ``profile_lf``, HF -> ``profile_hf``), range and gain. Standby (ping rate 5)
+  stops a client's pings; repeated fire messages just update its
+  configuration; junk bytes and malformed messages are counted and skipped.
+
+A client renders only while it is connected and firing. Clients with the same
+configuration share one render per ping.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from hilsim.devices.base import Device, DeviceContext, Endpoint, RenderedFrame
+from hilsim.devices.sonar_pinger import ClientPinger, PingEntry
+from hilsim.links.tcp import Client, TcpServer
+from hilsim.protocols import oculus as oc
+
+log = logging.getLogger(__name__)
+
+MAX_RANGE_M = {oc.MODE_LF: 120.0, oc.MODE_HF: 40.0}  # datasheet (M750d)
+MIN_RANGE_M = 0.1  # estimate
+MIN_RESOLUTION_M = {oc.MODE_LF: 0.004, oc.MODE_HF: 0.0025}  # estimate (datasheet-like range resolution)
+
+
+def gain_db_from_percent(percent: float) -> float:
+    """Fire gain [%] -> receiver gain [dB]: 100 % = 0 dB, 20 log10(p / 100), floored at 1 %."""
+    return 20.0 * math.log10(min(max(percent, 1.0), 100.0) / 100.0)
+
+
+class OculusDevice(Device):
+    protocol = "oculus"
+    OPTIONS = {
+        "sensor": "sonar",                  # the sensor mount whose pose pings
+        "profile_lf": "oculus_m750d",       # masterMode 1
+        "profile_hf": "oculus_m750d_hf",    # masterMode 2
+        "port": oc.DATA_PORT,               # TCP data channel; 0 picks a free one
+        "status_port": oc.STATUS_PORT,      # UDP destination port of the status
+        "status_interval_s": 1.0,
+        "status_ip": None,                  # ipAddr in the status (default: the bind address)
+        "device_id": 1,                     # srcDeviceId / deviceId
+        "part_number": oc.PART_M750D,
+        "max_rows": 1024,                   # cap on nRanges per ping
+        "max_clients": 8,
+        "queue_frames": 2,                  # per-client queue [pings]
+    }
+
+    def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
+        super().__init__(name, options, ctx)
+        mount = ctx.scenario.sensor(str(self.options["sensor"]))
+        if mount.kind != "sonar":
+            raise ValueError(f"device {name!r}: sensor {mount.name!r} is a {mount.kind}, not a sonar")
+        self.mount = mount.name
+        self.profile_refs = {oc.MODE_LF: str(self.options["profile_lf"]), oc.MODE_HF: str(self.options["profile_hf"])}
+        self.profiles = {m: ctx.sonar_profile(ref) for m, ref in self.profile_refs.items()}
+        self.max_rows = int(self.options["max_rows"])
+        if not 16 <= self.max_rows <= 8192:
+            raise ValueError(f"device {name!r}: max_rows {self.max_rows} outside 16..8192")
+        for opt in ("port", "status_port"):
+            if not 0 <= int(self.options[opt]) <= 65535:
+                raise ValueError(f"device {name!r}: {opt} {self.options[opt]} is not a port")
+        self.server: TcpServer | None = None
+        self.pinger = ClientPinger(ctx, name, self.mount, self._send_pings)
+        self._udp: asyncio.DatagramTransport | None = None
+        self._status_event: Any = None
+        self.status_ip = "127.0.0.1"
+        self.pings_sent = 0
+        self.fires = 0
+        self.bad_messages = 0
+        self.junk_bytes = 0
+        self.status_sent = 0
+
+    # -- lifecycle -----------------------------------------------------------------
+
+    async def start(self) -> list[Endpoint]:
+        port = int(self.options["port"])
+        frame = oc.PING_V2_SIZE + 4 * 512 * (self.max_rows + 1)
+        self.server = self._server(port, frame)
+        try:
+            host, port = await self.server.start()
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE or port == 0:
+                raise
+            log.warning("%s: TCP port %d is taken; serving on a free port instead (clients that "
+                        "only try %d will not find it)", self.name, port, port)
+            self.server = self._server(0, frame)
+            host, port = await self.server.start()
+        self.status_ip = str(self.options["status_ip"] or (host if host not in ("0.0.0.0", "") else "127.0.0.1"))
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(asyncio.DatagramProtocol, local_addr=(self.ctx.bind, 0),
+                                                           allow_broadcast=True)
+        self._udp = transport
+        interval = float(self.options["status_interval_s"])
+        self._send_status(0.0)
+        self._status_event = self.ctx.scheduler.add(f"{self.name}.status", interval, self._send_status,
+                                                    priority=30, tolerance=interval)
+        return [Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}",
+                         {"status": f"udp {self.ctx.broadcast}:{self.options['status_port']}",
+                          "beams": 512, "modes": "LF,HF"})]
+
+    def _server(self, port: int, frame: int) -> TcpServer:
+        return TcpServer(self.name, self.ctx.bind, port, max_clients=int(self.options["max_clients"]),
+                         queue_len=int(self.options["queue_frames"]), write_buffer=frame, sndbuf=2 * frame,
+                         on_connect=self._on_connect, on_data=self._on_data, on_disconnect=self._on_disconnect)
+
+    async def close(self) -> None:
+        if self._status_event is not None:
+            self.ctx.scheduler.remove(self._status_event)
+            self._status_event = None
+        await self.pinger.close()
+        if self.server is not None:
+            await self.server.close()
+            self.server = None
+        if self._udp is not None:
+            self._udp.close()
+            self._udp = None
+
+    def status(self) -> dict[str, float]:
+        st = self.server.stats if self.server is not None else None
+        return {"clients": st.connected if st else 0, "pings": self.pings_sent, "renders": self.pinger.renders,
+                "dropped": st.messages_dropped if st else 0, "busy_skips": self.pinger.busy_skips,
+                "render_failures": self.pinger.failures, "fires": self.fires,
+                "bad_messages": self.bad_messages, "junk_bytes": self.junk_bytes}
+
+    # -- status datagram ---------------------------------------------------------------
+
+    def status_message(self) -> oc.Status:
+        connected = "0.0.0.0"
+        if self.server is not None and self.server.clients:
+            connected = next(iter(self.server.clients.values())).peer.rsplit(":", 1)[0]
+            if connected.count(".") != 3:
+                connected = "0.0.0.0"
+        loopback = self.status_ip.startswith("127.")
+        return oc.Status(device_id=int(self.options["device_id"]), part_number=int(self.options["part_number"]),
+                         status=oc.STATUS_MAIN_RUN, ip=self.status_ip,
+                         ip_mask="255.0.0.0" if loopback else "255.255.255.0", connected_ip=connected,
+                         temperatures=(20.0,) * 8, pressure=self._pressure_bar(),
+                         src_device_id=int(self.options["device_id"]))
+
+    def _pressure_bar(self) -> float:
+        depth = float(self.ctx.vehicle.state.depth)
+        return max(depth, 0.0) * 998.0 * 9.81 / 1e5
+
+    def _send_status(self, t: float) -> None:
+        if self._udp is None:
+            return
+        try:
+            self._udp.sendto(oc.encode_status(self.status_message()),
+                             (self.ctx.broadcast, int(self.options["status_port"])))
+            self.status_sent += 1
+        except OSError as exc:  # a network without that destination: keep serving TCP
+            log.warning("%s: status datagram not sent: %s", self.name, exc)
+
+    # -- TCP clients ---------------------------------------------------------------------
+
+    def _on_connect(self, client: Client) -> None:
+        client.state["reader"] = oc.OculusReader(oc.MAX_SERVER_PAYLOAD)
+
+    def _on_disconnect(self, client: Client) -> None:
+        self.pinger.set(client.id, None)
+
+    def _on_data(self, client: Client, data: bytes) -> None:
+        reader: oc.OculusReader = client.state["reader"]
+        reader.receive_data(data)
+        for _ in range(10_000):  # bounded: at most a few thousand events per read
+            ev = reader.next_event()
+            if ev is oc.NEED_DATA:
+                break
+            if isinstance(ev, oc.Fire):
+                self._fire(client, ev)
+            elif isinstance(ev, oc.Junk):
+                self.junk_bytes += ev.n_bytes
+            elif isinstance(ev, (oc.BadMessage, oc.Oversize)):
+                self.bad_messages += 1
+                log.debug("%s: %s sent a bad message: %s", self.name, client, ev)
+            # dummy keep-alives and other messages: nothing to do
+
+    def _fire(self, client: Client, fire: oc.Fire) -> None:
+        self.fires += 1
+        if fire.master_mode not in self.profiles:
+            self.bad_messages += 1
+            log.debug("%s: %s fired master mode %d (only 1 and 2 exist)", self.name, client, fire.master_mode)
+            return
+        if fire.ping_rate == oc.PING_RATE_STANDBY:
+            self.pinger.set(client.id, None)
+            client.state["fire"] = fire
+            return
+        mode = fire.master_mode
+        profile = self.profiles[mode]
+        max_range = MAX_RANGE_M[mode]
+        rng = fire.range if fire.range_in_metres else fire.range / 100.0 * max_range
+        rng = min(max(rng, MIN_RANGE_M), max_range)
+        rows = int(min(self.max_rows, max(16, math.ceil(rng / MIN_RESOLUTION_M[mode]))))
+        settings = profile.default_settings().replace(range_min=0.0, range_max=rng, n_samples=rows,
+                                                      gain_mode="fixed",
+                                                      gain_db=profile.defaults.gain_db + gain_db_from_percent(fire.gain))
+        entry = PingEntry(client, self.profile_refs[mode], settings, 1.0 / fire.ping_rate_hz,
+                          extra={"fire": fire, "mode": mode})
+        client.state["fire"] = fire
+        self.pinger.set(client.id, entry)
+
+    # -- pings -------------------------------------------------------------------------
+
+    def _send_pings(self, entries: list[PingEntry], r: RenderedFrame, index: int) -> None:
+        if self.server is None:
+            return
+        cache: dict[oc.Fire, bytes] = {}  # clients that fired the same get the same bytes
+        for e in entries:
+            fire: oc.Fire = e.extra["fire"]
+            msg = cache.get(fire)
+            if msg is None:
+                msg = cache[fire] = oc.encode_ping_result(self.ping_result(fire, e.extra["mode"], r, index))
+            client: Client = e.owner
+            if not client.closed and self.server.send(client, msg):
+                self.pings_sent += 1
+
+    def ping_result(self, fire: oc.Fire, mode: int, r: RenderedFrame, index: int) -> oc.PingResult:
+        """The SimplePingResult answering ``fire`` with the rendered frame ``r``."""
+        frame = r.frame
+        image, az = frame.image, frame.azimuths
+        if fire.n_beams_requested < image.shape[1]:
+            image, az = oc.halve_beams(image, az)
+        gains = None
+        if fire.send_gain:
+            g = np.asarray(frame.gain_db_at_range, dtype=np.float64)
+            if g.shape != (image.shape[0],):
+                g = np.zeros(image.shape[0])
+            gains = (10.0 ** (g / 20.0)).astype(np.float32)
+        s = r.state
+        roll, pitch, yaw = (math.degrees(a) for a in s.attitude)
+        sos = fire.speed_of_sound if fire.speed_of_sound > 0 else float(self.ctx.scenario.water.sound_speed)
+        start = float(s.time) if fire.version == 2 else float(int(s.time * 1000.0) & 0xFFFFFFFF)
+        return oc.PingResult(
+            fire=fire, image=oc.widen_samples(image, fire.data_size), bearings=oc.bearings_from_azimuths(az),
+            range_resolution=(frame.range_max - frame.range_min) / image.shape[0], gains=gains,
+            ping_id=index, status=0, frequency=self.profiles[mode].frequency, temperature=20.0,
+            pressure=self._pressure_bar(), heading=yaw % 360.0, pitch=pitch, roll=roll,
+            speed_of_sound_used=sos, ping_start_time=start, src_device_id=int(self.options["device_id"]),
+            dst_device_id=fire.src_device_id)

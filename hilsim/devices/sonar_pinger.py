@@ -1,0 +1,135 @@
+"""Per-client sonar pinging shared by the Oculus and ARIS devices.
+
+Each client of a vendor sonar sets its own ping configuration (range, rate,
+beams ...). :class:`ClientPinger` holds one entry per pinging client and one
+scheduler event, present only while some entry pings (a protocol nobody uses
+costs nothing). At each tick the due entries are grouped by their render
+key (profile + settings): one render per group serves every client in it.
+One batch renders at a time; a tick that finds the previous batch still
+rendering skips its due pings (counted in ``busy_skips``) instead of queueing
+them, so a slow renderer lowers the frame rate and never builds a backlog.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Awaitable, Callable, Hashable
+
+from hilsim.devices.base import DeviceContext, RenderedFrame, RenderFailed
+from hilsim.sim.sonar_profile import SonarSettings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PingEntry:
+    """One client's ping configuration. period [s]; next_due [s] simulation time."""
+
+    owner: Any
+    profile: str
+    settings: SonarSettings
+    period: float
+    next_due: float = 0.0
+    cid: int = -1  # the key it is registered under
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def key(self) -> Hashable:
+        return (self.profile, self.settings)
+
+
+OnFrame = Callable[[list[PingEntry], RenderedFrame, int], None]
+
+
+class ClientPinger:
+    """Schedules renders for per-client configurations (see module docstring).
+
+    on_frame(entries, rendered, frame_index) is called for each rendered group.
+    tick_hz: the scheduler event's rate [Hz] (the finest ping period served).
+    """
+
+    def __init__(self, ctx: DeviceContext, name: str, mount: str, on_frame: OnFrame,
+                 tick_hz: float = 40.0) -> None:
+        self.ctx = ctx
+        self.name = name
+        self.mount = mount
+        self.on_frame = on_frame
+        self.tick = 1.0 / tick_hz
+        self.entries: dict[int, PingEntry] = {}
+        self._event: Any = None
+        self._busy = False
+        self._tasks: set[asyncio.Future[Any]] = set()
+        self.frame_index = 0
+        self.renders = 0
+        self.busy_skips = 0
+        self.failures = 0
+
+    def set(self, key: int, entry: PingEntry | None) -> None:
+        """Set (or with None remove) the entry of client ``key``; a new entry pings at once."""
+        if entry is None or entry.period <= 0.0:
+            self.entries.pop(key, None)
+        else:
+            old = self.entries.get(key)
+            entry.next_due = old.next_due if old is not None else self.ctx.now()
+            entry.cid = key
+            self.entries[key] = entry
+        self._update_event()
+
+    def _update_event(self) -> None:
+        if self.entries and self._event is None:
+            self._event = self.ctx.scheduler.add(f"{self.name}.ping", self.tick, self._on_tick, priority=20,
+                                                 tolerance=self.tick)
+        elif not self.entries and self._event is not None:
+            self.ctx.scheduler.remove(self._event)
+            self._event = None
+
+    async def close(self) -> None:
+        self.entries.clear()
+        self._update_event()
+        for t in list(self._tasks):
+            t.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    def _on_tick(self, t: float) -> Awaitable[Any] | None:
+        due = [e for e in self.entries.values() if e.next_due <= t + 1e-9]
+        if not due:
+            return None
+        for e in due:
+            e.next_due = e.next_due + e.period if e.next_due + e.period > t else t + e.period
+        if self._busy:
+            self.busy_skips += len(due)
+            return None
+        groups: dict[Hashable, list[PingEntry]] = {}
+        for e in due:
+            groups.setdefault(e.key, []).append(e)
+        self._busy = True
+        coro = self._render_groups(list(groups.values()))
+        defer = getattr(self.ctx, "defer", None)
+        if defer is not None:
+            return defer(coro)
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return None
+
+    async def _render_groups(self, groups: list[list[PingEntry]]) -> None:
+        try:
+            for group in groups:
+                head = group[0]
+                index = self.frame_index
+                self.frame_index += 1
+                try:
+                    r = await self.ctx.render(self.mount, head.profile, head.settings, frame_index=index)
+                except RenderFailed as exc:
+                    self.failures += 1
+                    log.warning("%s: ping %d lost: %s", self.name, index, exc)
+                    continue
+                self.renders += 1
+                live = [e for e in group if self.entries.get(e.cid) is e]
+                if live:
+                    self.on_frame(live, r, index)
+        finally:
+            self._busy = False
