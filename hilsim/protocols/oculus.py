@@ -89,6 +89,8 @@ STATUS_TX_FAULT: Final = 1 << 16
 PART_M750D: Final = 1032
 PART_M1200D: Final = 1042
 
+KNOWN_IDS: Final = frozenset({MSG_FIRE, MSG_PING_RESULT, MSG_SIMPLE_PING_RESULT, MSG_USER_CONFIG, MSG_LOGS,
+                               MSG_DUMMY})
 MAX_SERVER_PAYLOAD: Final = 4096  # client -> sonar messages are small
 MAX_CLIENT_PAYLOAD: Final = 64 * 1024 * 1024  # a ping: <= 1024 beams x 65535 rows x 4 B ...
 
@@ -503,6 +505,8 @@ def decode_message(data: bytes) -> Message:
         return _decode_fire(h, data)
     if h.msg_id == MSG_SIMPLE_PING_RESULT:
         return _decode_ping(h, data)
+    if h.msg_id not in KNOWN_IDS:
+        return BadMessage(f"unknown message id 0x{h.msg_id:02x}", h.msg_id)
     return OtherMessage(h, data[HEADER_SIZE:])
 
 
@@ -537,8 +541,11 @@ class OculusReader:
     the next ``53 4F`` id come out as one :class:`Junk` event; a header whose
     payload exceeds ``max_payload`` gives :class:`Oversize` and the reader
     resumes scanning right after its id (so a stalled huge "message" holds
-    nothing); a framed message that is not valid gives :class:`BadMessage`.
-    Nothing raises on peer input. The buffer never holds more than
+    nothing); a framed message that is not valid (wrong size, broken
+    invariant, unknown id) gives :class:`BadMessage` and the reader also
+    resumes right after its id. So after any garbage, at most ``16 +
+    max_payload`` bytes of valid messages are lost before the reader is in
+    step again. Nothing raises on peer input. The buffer never holds more than
     ``16 + max_payload`` bytes plus what the caller fed since its last drain.
     """
 
@@ -595,10 +602,13 @@ class OculusReader:
         if len(buf) < end:
             return NEED_DATA
         msg = decode_message(bytes(buf[pos:end]))
-        self._pos = end
         if isinstance(msg, BadMessage):
+            # the frame may be a false start (a truncated message's header running into the
+            # next one): drop only its id and look for the next one inside it
+            self._pos = pos + 2
             self.stats.bad += 1
         else:
+            self._pos = end
             self.stats.messages += 1
         return msg
 
