@@ -1,0 +1,303 @@
+"""Navigation sensors with a Modbus output: a Keller Series 30 depth sensor and a
+WitMotion HWT905 IMU, on Modbus TCP and/or Modbus RTU on a pty.
+
+A device = a sensor model from ``devices/sensors/`` (hilsim.sim.navigation) + a
+register map from ``protocols/`` (hilsim.protocols.registers) + servers from
+hilsim.links.modbus. The sensor is sampled on the scheduler at its rate and
+each sample is encoded into the device's one :class:`RegisterImage`, which
+every server of the device reads on each request. Scenario example::
+
+    [[devices]]
+    name = "depth"
+    protocol = "modbus-keller"
+    transport = ["tcp", "rtu"]   # either or both
+    port = 0                     # TCP port, 0: a free one
+    path = ""                    # RTU: the pty symlink ("": <run_dir>/<name>.tty)
+    baudrate = 9600
+    parity = "N"
+    device_id = 1
+
+Options: transport, port, path, baudrate, parity, stop_bits, device_id (0: the
+map's default), map (a file in ``protocols/`` or the scenario folder), sensor
+(a profile reference, ``keller_serie30``), rate [Hz] (0: the profile's), mount
+(a scenario ``[[sensors]]`` name whose position is the pressure port's lever
+arm; "" the body origin), max_clients (per TCP server).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from pathlib import Path
+from typing import Any, ClassVar, Mapping
+
+from hilsim.devices.base import Device, DeviceContext, Endpoint
+from hilsim.links.modbus import ModbusRtuServer, ModbusTarget, ModbusTcpServer, WriteAction
+from hilsim.protocols.registers import DEVICE_FAILURE, ModbusError, Register, RegisterImage, RegisterMap, load_map
+from hilsim.resources import data_path, find_profile
+from hilsim.sim.navigation import (
+    Imu,
+    ImuReading,
+    PressureReading,
+    PressureSensor,
+    Sensor,
+    load_imu_profile,
+    load_pressure_profile,
+)
+
+log = logging.getLogger(__name__)
+
+TRANSPORTS = ("tcp", "rtu")
+
+
+def find_map(name: str, base: Path | None = None) -> Path:
+    """A register map by name (``keller_serie30``): the scenario folder ``base`` first, then ``protocols/``."""
+    rel = name if name.endswith(".toml") else name + ".toml"
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise ValueError(f"register map {name!r}: give a name in protocols/ or the scenario folder, not a path")
+    candidates = ([base / rel] if base is not None else []) + [data_path("protocols", rel)]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    known = sorted(p.stem for p in data_path("protocols").glob("*.toml"))
+    raise FileNotFoundError(f"register map {name!r} not found (bundled maps: {', '.join(known) or 'none'})")
+
+
+def pressure_signals(reading: PressureReading, zero: float = 0.0) -> dict[str, float]:
+    """Signals of a pressure reading: ``pressure`` [Pa] (minus ``zero`` [Pa]), ``temperature`` [K]."""
+    return {"pressure": reading.pressure - zero, "temperature": reading.temperature}
+
+
+def imu_signals(reading: ImuReading) -> dict[str, float]:
+    """Signals of an IMU reading (SI, body frame x fwd, y stbd, z down): ``specific_force.x`` ...,
+    ``angular_velocity.*``, ``magnetic_field.*``, ``attitude.roll|pitch|yaw``, ``quaternion.w|x|y|z``,
+    ``temperature``."""
+    out: dict[str, float] = {"temperature": reading.temperature}
+    for key in ("specific_force", "angular_velocity", "magnetic_field"):
+        vec = getattr(reading, key)
+        for axis, v in zip("xyz", vec):
+            out[f"{key}.{axis}"] = float(v)
+    for axis, v in zip(("roll", "pitch", "yaw"), reading.attitude):
+        out[f"attitude.{axis}"] = float(v)
+    for axis, v in zip("wxyz", reading.quaternion):
+        out[f"quaternion.{axis}"] = float(v)
+    return out
+
+
+class ModbusSensorDevice(Device):
+    """Base of the Modbus sensors: options, servers, sampling. Subclasses build the
+    sensor (:meth:`make_sensor`) and turn its readings into signals (:meth:`signals`)."""
+
+    DEFAULT_MAP: ClassVar[str]
+    DEFAULT_SENSOR: ClassVar[str]
+    SIGNALS: ClassVar[frozenset[str]]
+    OPTIONS: ClassVar[Mapping[str, Any]] = {
+        "transport": ["tcp", "rtu"], "port": 0, "path": "", "baudrate": 9600, "parity": "N", "stop_bits": 1,
+        "device_id": 0, "map": "", "sensor": "", "rate": 0.0, "mount": "", "max_clients": 32,
+    }
+
+    def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
+        super().__init__(name, options, ctx)
+        o = self.options
+        transport = o["transport"]
+        self.transports = (transport,) if isinstance(transport, str) else tuple(transport)
+        bad = [t for t in self.transports if t not in TRANSPORTS]
+        if bad or not self.transports:
+            raise ValueError(f"device {name!r}: transport must be a list of {TRANSPORTS}, got {transport!r}")
+        if str(o["parity"]).upper() not in ("N", "E", "O"):
+            raise ValueError(f"device {name!r}: parity must be \"N\", \"E\" or \"O\", got {o['parity']!r}")
+        if not (isinstance(o["baudrate"], int) and o["baudrate"] > 0):
+            raise ValueError(f"device {name!r}: baudrate must be a positive integer, got {o['baudrate']!r}")
+        if not (isinstance(o["device_id"], int) and 0 <= o["device_id"] <= 247):
+            raise ValueError(f"device {name!r}: device_id must be 1..247 (0: the map's), got {o['device_id']!r}")
+        scenario = getattr(ctx, "scenario", None)
+        self._base: Path | None = scenario.folder if scenario is not None else None
+        self.map: RegisterMap = load_map(find_map(str(o["map"] or self.DEFAULT_MAP), self._base))
+        unknown = self.map.sources - self.SIGNALS
+        if unknown:
+            raise ValueError(f"device {name!r}: map {self.map.name!r} shows signals {sorted(unknown)} that a "
+                             f"{self.protocol} device does not have (it has {', '.join(sorted(self.SIGNALS))})")
+        self.image = RegisterImage(self.map)
+        self.sensor: Sensor[Any] = self.make_sensor()
+        self.target = ModbusTarget(self.image, o["device_id"] or None, actions=self.actions(), name=name)
+        self.tcp: ModbusTcpServer | None = None
+        self.rtu: ModbusRtuServer | None = None
+        self._own_rtu = False
+        self._event: Any = None
+        self.samples = 0
+        self.last_reading: Any = None
+
+    # -- what subclasses provide --
+
+    def make_sensor(self) -> Sensor[Any]:
+        raise NotImplementedError
+
+    def signals(self, reading: Any) -> dict[str, float]:
+        raise NotImplementedError
+
+    def actions(self) -> dict[str, WriteAction]:
+        """Write actions (map ``on_write`` names) this device implements."""
+        return {}
+
+    # -- Device contract --
+
+    def _profile_path(self) -> Path:
+        return find_profile("sensors", str(self.options["sensor"] or self.DEFAULT_SENSOR), self._base)
+
+    def _rate(self, profile_rate: float) -> float:
+        rate = float(self.options["rate"] or profile_rate)
+        if not rate > 0:
+            raise ValueError(f"device {self.name!r}: rate must be > 0 Hz, got {rate}")
+        return rate
+
+    def sample(self, t: float = math.nan) -> None:
+        """Sample the sensor at the vehicle's current state and publish it to the registers."""
+        state = self.ctx.vehicle.state
+        reading = self.sensor.sample(state)
+        self.last_reading = reading
+        self.image.update(self.signals(reading), state.time)
+        self.samples += 1
+
+    async def start(self) -> list[Endpoint]:
+        o = self.options
+        endpoints: list[Endpoint] = []
+        self.sample()
+        self._event = self.ctx.scheduler.add(self.name, self.sensor.period, self.sample, priority=10)
+        extra = {"device_id": self.target.device_id, "map": self.map.name}
+        if "tcp" in self.transports:
+            self.tcp = ModbusTcpServer(self.name, self.target, self.ctx.bind, int(o["port"]),
+                                       max_clients=int(o["max_clients"]))
+            host, port = await self.tcp.start()
+            endpoints.append(Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}", extra))
+        if "rtu" in self.transports:
+            serial = {"baudrate": int(o["baudrate"]), "parity": str(o["parity"]).upper(),
+                      "stop_bits": int(o["stop_bits"])}
+            await self._start_rtu(serial)
+            assert self.rtu is not None
+            endpoints.append(Endpoint(self.name, self.protocol, "pty", self.rtu.path,
+                                      {**serial, **extra, "framing": "rtu"}))
+        return endpoints
+
+    async def _start_rtu(self, serial: dict[str, Any]) -> None:
+        path = str(self.options["path"])
+        if not path:  # a line of its own
+            self.rtu = ModbusRtuServer(self.name, Path(self.ctx.run_dir) / f"{self.name}.tty", [self.target],
+                                       **serial)
+            self._own_rtu = True
+            await self.rtu.start()
+            return
+        # an explicit path: devices naming the same one share the line (an RS-485 bus)
+        full = Path(path) if Path(path).is_absolute() else Path(self.ctx.run_dir) / path
+
+        async def factory() -> ModbusRtuServer:
+            srv = ModbusRtuServer(f"modbus-rtu:{full.name}", full, [], **serial)
+            await srv.start()
+            return srv
+
+        shared = getattr(self.ctx, "shared", None)
+        if shared is None:
+            self.rtu = await factory()
+            self._own_rtu = True
+        else:
+            self.rtu = await shared(("modbus-rtu", str(full)), factory)
+        line = {"baudrate": self.rtu.baudrate, "parity": self.rtu.link.parity, "stop_bits": self.rtu.link.stop_bits}
+        if line != serial:
+            raise ValueError(f"device {self.name!r}: RTU line {full} is already open with {line}, not {serial}")
+        self.rtu.attach(self.target)
+
+    async def close(self) -> None:
+        if self._event is not None:
+            self.ctx.scheduler.remove(self._event)
+            self._event = None
+        if self.tcp is not None:
+            await self.tcp.close()
+            self.tcp = None
+        if self.rtu is not None:
+            self.rtu.detach(self.target)
+            if self._own_rtu:
+                await self.rtu.close()
+            self.rtu = None
+
+    def status(self) -> dict[str, float]:
+        s = self.target.stats
+        out: dict[str, float] = {"samples": self.samples, "requests": s.requests, "exceptions": s.exceptions,
+                                 "device_id": self.target.device_id}
+        if self.tcp is not None:
+            out["clients"] = self.tcp.link.stats.connected
+            out["refused"] = self.tcp.link.stats.refused
+            out["tcp_malformed"] = self.tcp.stats.malformed
+        if self.rtu is not None:
+            out["crc_errors"] = self.rtu.stats.crc_errors
+            out["rtu_ignored"] = self.rtu.stats.ignored
+        if s.internal_errors:
+            out["internal_errors"] = s.internal_errors
+        return out
+
+
+class KellerDevice(ModbusSensorDevice):
+    """Keller Series 30 pressure transmitter: P1 [bar abs] and TOB1 [deg C] in float32,
+    P1 in int32 1/100 mbar; "set zero P1" (0xFF00) makes P1 read zero at the current
+    pressure; ``channel_error = True`` makes the pressure channels read NaN."""
+
+    protocol = "modbus-keller"
+    DEFAULT_MAP = "keller_serie30"
+    DEFAULT_SENSOR = "keller_serie30"
+    SIGNALS = frozenset({"pressure", "temperature"})
+
+    zero: float = 0.0            # [Pa] subtracted from P1 since the last "set zero"
+    channel_error: bool = False  # fault injection: P1 reads NaN
+
+    def make_sensor(self) -> PressureSensor:
+        profile = load_pressure_profile(self._profile_path())
+        profile = dataclasses.replace(profile, rate=self._rate(profile.rate))
+        scenario = getattr(self.ctx, "scenario", None)
+        density = scenario.water.density if scenario is not None else 1025.0
+        mount: tuple[float, ...] = (0.0, 0.0, 0.0)
+        if self.options["mount"]:
+            if scenario is None:
+                raise ValueError(f"device {self.name!r}: mount {self.options['mount']!r} needs a scenario")
+            mount = tuple(float(x) for x in scenario.sensor(str(self.options["mount"])).mount.position)
+        return PressureSensor(profile, seed=self.ctx.seed, name=self.name, water_density=density, mount=mount)
+
+    def signals(self, reading: PressureReading) -> dict[str, float]:
+        out = pressure_signals(reading, self.zero)
+        if self.channel_error:
+            out["pressure"] = math.nan
+        return out
+
+    def actions(self) -> dict[str, WriteAction]:
+        return {"set_zero": self._set_zero}
+
+    def _set_zero(self, register: Register, value: float) -> None:
+        raw = self.last_reading.pressure if self.last_reading is not None else math.nan
+        if not math.isfinite(raw) or self.channel_error:
+            raise ModbusError(DEVICE_FAILURE, "cannot zero a channel in error or out of range")
+        self.zero = raw
+        log.info("%s: P1 zeroed at %.5f bar", self.name, raw / 1e5)
+        if self.last_reading is not None:  # the registers show the zeroed value at once
+            self.image.update(self.signals(self.last_reading), self.image.time)
+
+
+class WitMotionDevice(ModbusSensorDevice):
+    """WitMotion HWT905-485 IMU: acceleration, angular rate, magnetic field, angles,
+    temperature, quaternion as int16 in the sensor's own Z-up axes."""
+
+    protocol = "modbus-witmotion"
+    DEFAULT_MAP = "witmotion_hwt905"
+    DEFAULT_SENSOR = "witmotion_hwt905"
+    SIGNALS = frozenset({"temperature"} | {f"{k}.{a}" for k in ("specific_force", "angular_velocity",
+                                                              "magnetic_field") for a in "xyz"}
+                        | {f"attitude.{a}" for a in ("roll", "pitch", "yaw")}
+                        | {f"quaternion.{a}" for a in "wxyz"})
+
+    def make_sensor(self) -> Imu:
+        profile = load_imu_profile(self._profile_path())
+        profile = dataclasses.replace(profile, rate=self._rate(profile.rate))
+        return Imu(profile, seed=self.ctx.seed, name=self.name)
+
+    def signals(self, reading: ImuReading) -> dict[str, float]:
+        return imu_signals(reading)
+
+
+__all__ = ["KellerDevice", "ModbusSensorDevice", "WitMotionDevice", "find_map", "imu_signals", "pressure_signals"]

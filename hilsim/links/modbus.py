@@ -1,0 +1,477 @@
+"""Modbus TCP and Modbus RTU (on a pty) servers around one shared register image.
+
+Layers, innermost first:
+
+* :class:`ModbusTarget`: one emulated device on the bus: its
+  :class:`~hilsim.protocols.registers.RegisterImage` (the single live copy of its
+  registers, updated by the device at the sensor's rate), its address (which a
+  write may change), and the actions its writable registers trigger. It turns a
+  request PDU into a response PDU, or into silence, as the real device does:
+  01 for a function it lacks, 03 for a malformed request or a bad count or value,
+  02 for an address outside the map, the map's code for a write to a read-only
+  register. Requests are decoded by pymodbus's PDU decoder and answered with
+  pymodbus's response classes.
+* :class:`TcpSession` and :class:`RtuSession`: sans-I/O framing (bytes in, reply
+  frames out) with pymodbus's ``FramerSocket`` (MBAP) and ``FramerRTU`` (CRC).
+  TCP: a header that is not Modbus (protocol id != 0, length outside 2..254)
+  closes the connection. RTU: a frame with a bad CRC is dropped in silence, a
+  frame for another address is ignored, broadcast (address 0) writes are done
+  without a reply, and what the length rules cannot delimit is taken as one
+  frame when the line has been idle for 3.5 characters (as a real device does).
+* :class:`ModbusTcpServer` (on :class:`hilsim.links.tcp.TcpServer`: client limit
+  with a log line, per-client bounded queues) and :class:`ModbusRtuServer` (on
+  :class:`hilsim.links.pty.PtyLink`: a stable path, replies paced at the baud
+  rate, survives the client closing and reopening the port).
+
+Why not pymodbus's own server classes: each keeps its own copy of the registers
+(a TCP and an RTU server would hold two states), the RTU one opens a serial
+port itself (a pty pair and a relay for the baud pacing) and hunts past frames
+with an unknown function instead of answering 01, the device address cannot
+change at run time, and there is no client limit. pymodbus's framers and PDU
+classes do the wire encoding here; the transport and the device's behaviour
+are ours. Nothing a client sends raises out of this module: a failure inside
+is logged, counted in ``stats.internal_errors`` and answered with 04.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Mapping
+
+from pymodbus.framer import FramerRTU, FramerSocket
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersResponse,
+    ReadInputRegistersResponse,
+    WriteMultipleRegistersResponse,
+    WriteSingleRegisterResponse,
+)
+
+from hilsim.links.pty import PtyLink
+from hilsim.links.tcp import Client, TcpServer
+from hilsim.protocols.registers import (
+    DEVICE_FAILURE,
+    GATEWAY_NO_RESPONSE,
+    ILLEGAL_FUNCTION,
+    ILLEGAL_VALUE,
+    ModbusError,
+    Register,
+    RegisterImage,
+)
+
+log = logging.getLogger(__name__)
+
+WriteAction = Callable[[Register, float], None]  # may raise ModbusError
+MAX_RTU_ADU = 256
+MAX_TCP_LENGTH = 254  # MBAP length field: unit id + PDU (max 253 bytes)
+_DECODER = DecodePDU(True)  # request decoder (server side); stateless
+
+
+@dataclass
+class ModbusStats:
+    """Counters of one server (a session's) or of one target (what it handled, over all its servers)."""
+
+    requests: int = 0         # frames addressed to us and decoded
+    replies: int = 0
+    exceptions: int = 0       # replies that were exception responses
+    ignored: int = 0          # RTU frames for other addresses
+    broadcasts: int = 0
+    crc_errors: int = 0       # RTU frames dropped for a bad CRC
+    malformed: int = 0        # TCP headers that closed the connection, RTU bytes dropped unframed
+    dropped: int = 0          # replies not sent: the client did not read them
+    internal_errors: int = 0  # our bugs (logged, answered 04)
+    exception_codes: dict[int, int] = field(default_factory=dict)
+
+    def count_exception(self, code: int) -> None:
+        self.exceptions += 1
+        self.exception_codes[code] = self.exception_codes.get(code, 0) + 1
+
+
+class ModbusTarget:
+    """One device on the bus: register image + address + write actions.
+
+    image: the device's register image (read live on every request);
+    device_id: its address (default: the map's); actions: on_write name ->
+    callable(register, value in its unit) (may raise ModbusError); ``device_id``
+    and ``store`` are built in. ``on_address_change(old, new)`` is called after
+    an address write.
+    """
+
+    def __init__(self, image: RegisterImage, device_id: int | None = None, *,
+                 actions: Mapping[str, WriteAction] | None = None, name: str = "",
+                 on_address_change: Callable[[int, int], None] | None = None):
+        self.image = image
+        self.map = image.map
+        self.name = name or image.map.name
+        self.device_id = int(device_id if device_id is not None else image.map.device_id)
+        if not 1 <= self.device_id <= 247:
+            raise ValueError(f"{self.name}: device_id must be 1..247, got {self.device_id}")
+        self.actions: dict[str, WriteAction] = dict(actions or {})
+        missing = self.map.actions - set(self.actions) - {"device_id"}
+        if missing:
+            raise ValueError(f"{self.name}: map {self.map.name!r} needs write actions {sorted(missing)} "
+                             "that the device does not provide")
+        self.on_address_change = on_address_change
+        self.stats = ModbusStats()
+        self._functions = frozenset(self.map.read_functions) | frozenset(self.map.write_functions)
+        for r in self.map.registers:
+            if r.on_write == "device_id":
+                image.store(r, self.device_id)
+
+    def answers(self, unit: int, tcp: bool) -> bool:
+        """Whether a request to address ``unit`` is ours (0 on RTU is broadcast, not 'ours')."""
+        if unit == self.device_id or (unit == self.map.transparent_id and unit is not None):
+            return True
+        return tcp and unit in (0, 255)
+
+    def handle(self, unit: int, pdu: bytes, *, broadcast: bool = False) -> ModbusPDU | None:
+        """The response PDU (dev_id = ``unit``) to request ``pdu`` (function code + data);
+        None when nothing is to be sent (broadcast)."""
+        self.stats.requests += 1
+        fc = pdu[0] if pdu else 0
+        try:
+            response = self._dispatch(fc, pdu)
+        except ModbusError as exc:
+            response = ExceptionResponse(fc & 0x7F, exc.code)
+        except Exception:  # our bug: log it, answer "device failure", keep serving
+            self.stats.internal_errors += 1
+            log.exception("%s: error handling request %s", self.name, pdu.hex())
+            response = ExceptionResponse(fc & 0x7F, DEVICE_FAILURE)
+        if broadcast:
+            self.stats.broadcasts += 1
+            return None
+        if isinstance(response, ExceptionResponse):
+            self.stats.count_exception(response.exception_code)
+        self.stats.replies += 1
+        response.dev_id = unit
+        return response
+
+    def _dispatch(self, fc: int, pdu: bytes) -> ModbusPDU:
+        if fc not in self._functions:
+            raise ModbusError(ILLEGAL_FUNCTION, f"function {fc:#04x}")
+        if fc in (3, 4, 6):
+            if len(pdu) != 5:
+                raise ModbusError(ILLEGAL_VALUE, f"function {fc}: PDU of {len(pdu)} bytes")
+        elif fc == 16:
+            if len(pdu) < 6:
+                raise ModbusError(ILLEGAL_VALUE, "function 16: short PDU")
+            count, nbytes = struct.unpack(">HB", pdu[3:6])
+            if not 1 <= count <= 123 or nbytes != 2 * count or len(pdu) != 6 + nbytes:
+                raise ModbusError(ILLEGAL_VALUE, f"function 16: count {count}, byte count {nbytes}")
+        else:  # a function listed in the map that this server does not implement
+            raise ModbusError(ILLEGAL_FUNCTION, f"function {fc:#04x} not implemented")
+        req = _DECODER.decode(pdu)
+        if req is None:  # pymodbus refused it (count out of 1..125)
+            raise ModbusError(ILLEGAL_VALUE, "request does not decode")
+        if fc in (3, 4):
+            regs = self.image.read(req.address, req.count)
+            cls = ReadHoldingRegistersResponse if fc == 3 else ReadInputRegistersResponse
+            return cls(registers=regs)
+        values = list(req.registers)
+        self._write(req.address, values)
+        if fc == 6:
+            return WriteSingleRegisterResponse(address=req.address, registers=values)
+        return WriteMultipleRegistersResponse(address=req.address, count=len(values))
+
+    def _write(self, address: int, words: list[int]) -> None:
+        writes = self.image.check_write(address, words)
+        for reg, value in writes:
+            if reg.on_write == "device_id":
+                self.set_device_id(int(value))
+                continue
+            if reg.on_write != "store":
+                self.actions[reg.on_write](reg, value)
+            self.image.store(reg, value)
+
+    def set_device_id(self, new: int) -> None:
+        """Move the device to address ``new`` (1..247); the address registers follow."""
+        if not 1 <= new <= 247:
+            raise ModbusError(ILLEGAL_VALUE, f"address {new} outside 1..247")
+        old, self.device_id = self.device_id, int(new)
+        for r in self.map.registers:
+            if r.on_write == "device_id":
+                self.image.store(r, self.device_id)
+        if old != new:
+            log.info("%s: device address %d -> %d", self.name, old, new)
+            if self.on_address_change is not None:
+                self.on_address_change(old, new)
+
+
+class TcpSession:
+    """Modbus TCP framing for one connection (sans-I/O).
+
+    ``receive_data(bytes)`` then ``process(n)`` -> reply frames; ``closed`` with
+    ``close_reason`` once the peer sent something that is not Modbus TCP.
+    """
+
+    def __init__(self, target: ModbusTarget, stats: ModbusStats | None = None):
+        self.target = target
+        self.stats = stats if stats is not None else ModbusStats()
+        self.framer = FramerSocket(_DECODER)
+        self.buffer = bytearray()
+        self.closed = False
+        self.close_reason = ""
+
+    def receive_data(self, data: bytes) -> None:
+        if not self.closed:
+            self.buffer += data
+
+    def _frame_length(self) -> int:
+        """Length of the complete frame at the buffer's head, 0 if incomplete;
+        closes the session on a header that is not Modbus TCP."""
+        buf = self.buffer
+        if len(buf) < 7:
+            return 0
+        pid, length = struct.unpack_from(">HH", buf, 2)
+        if pid != 0 or not 2 <= length <= MAX_TCP_LENGTH:
+            self.closed = True
+            self.close_reason = f"not Modbus TCP (protocol id {pid}, length {length})"
+            self.stats.malformed += 1
+            self.buffer.clear()
+            return 0
+        return 6 + length if len(buf) >= 6 + length else 0
+
+    def has_frame(self) -> bool:
+        """A complete frame is waiting."""
+        return not self.closed and self._frame_length() > 0
+
+    def process(self, max_frames: int = 1 << 30) -> list[bytes]:
+        """Answer up to ``max_frames`` complete frames from the buffer."""
+        out: list[bytes] = []
+        for _ in range(max_frames):
+            n = self._frame_length()
+            if not n:
+                break
+            frame = bytes(self.buffer[:n])
+            del self.buffer[:n]
+            try:
+                _, unit, tid, pdu = self.framer.decode(frame)
+                self.stats.requests += 1
+                if self.target.answers(unit, tcp=True):
+                    resp = self.target.handle(unit, pdu)
+                else:  # as a gateway whose serial device does not answer
+                    resp = ExceptionResponse(pdu[0] & 0x7F, GATEWAY_NO_RESPONSE, device_id=unit)
+                if resp is not None:
+                    self.stats.replies += 1
+                    if isinstance(resp, ExceptionResponse):
+                        self.stats.count_exception(resp.exception_code)
+                    resp.transaction_id = tid
+                    out.append(self.framer.buildFrame(resp))
+            except Exception:  # our bug: keep the connection and the server
+                self.stats.internal_errors += 1
+                log.exception("%s: error framing %s", self.target.name, frame.hex())
+        return out
+
+
+class RtuSession:
+    """Modbus RTU framing for one serial line, any number of targets on it (sans-I/O).
+
+    ``receive_data(bytes)`` -> reply frames for the frames the length rules
+    delimit; ``silence()`` (the line idle for 3.5 characters) -> the rest of the
+    buffer taken as one frame (an unknown function, a garbled frame).
+    """
+
+    def __init__(self, targets: Iterable[ModbusTarget] = (), stats: ModbusStats | None = None):
+        self.targets = list(targets)
+        self.stats = stats if stats is not None else ModbusStats()
+        self.framer = FramerRTU(_DECODER)
+        self.buffer = bytearray()
+
+    @property
+    def pending(self) -> bool:
+        return bool(self.buffer)
+
+    def receive_data(self, data: bytes) -> list[bytes]:
+        self.buffer += data
+        out: list[bytes] = []
+        for _ in range(64):  # bounded: each pass consumes the buffer or waits
+            if len(self.buffer) > MAX_RTU_ADU:
+                self.stats.malformed += 1
+                self.buffer.clear()
+            if not self.buffer:
+                break
+            try:
+                used, unit, _, pdu = self.framer.decode(bytes(self.buffer))
+            except Exception:  # a pymodbus decoding bug: drop what we have
+                self.stats.internal_errors += 1
+                log.exception("rtu: framer failed on %s", self.buffer.hex())
+                self.buffer.clear()
+                break
+            if not used:
+                break  # incomplete, or not delimitable: wait for more or for silence
+            del self.buffer[:used]
+            if not pdu:
+                self.stats.crc_errors += 1
+                continue
+            reply = self._dispatch(unit, pdu)
+            if reply is not None:
+                out.append(reply)
+        return out
+
+    def silence(self) -> list[bytes]:
+        """The line went idle: whatever is buffered is one frame."""
+        frame = bytes(self.buffer)
+        self.buffer.clear()
+        if not frame:
+            return []
+        if len(frame) < 4:
+            self.stats.malformed += 1
+            return []
+        crc = int.from_bytes(frame[-2:], "big")
+        if not FramerRTU.check_CRC(frame[:-2], crc):
+            self.stats.crc_errors += 1
+            return []
+        reply = self._dispatch(frame[0], frame[1:-2])
+        return [reply] if reply is not None else []
+
+    def _dispatch(self, unit: int, pdu: bytes) -> bytes | None:
+        try:
+            if unit == 0:
+                for t in self.targets:
+                    t.handle(0, pdu, broadcast=True)
+                self.stats.broadcasts += 1
+                return None
+            for t in self.targets:
+                if t.answers(unit, tcp=False):
+                    resp = t.handle(unit, pdu)
+                    self.stats.requests += 1
+                    if resp is None:
+                        return None
+                    self.stats.replies += 1
+                    if isinstance(resp, ExceptionResponse):
+                        self.stats.count_exception(resp.exception_code)
+                    return self.framer.buildFrame(resp)
+            self.stats.ignored += 1
+        except Exception:  # our bug
+            self.stats.internal_errors += 1
+            log.exception("rtu: error answering %d %s", unit, pdu.hex())
+        return None
+
+
+class ModbusTcpServer:
+    """Modbus TCP on ``host:port`` (0: a free port) for one target.
+
+    max_clients: connections beyond it are refused with a log line;
+    batch: requests answered per client before letting the others in;
+    write_buffer [bytes]: replies a client has not read beyond this are dropped (counted).
+    """
+
+    def __init__(self, name: str, target: ModbusTarget, host: str = "127.0.0.1", port: int = 0, *,
+                 max_clients: int = 32, batch: int = 4, write_buffer: int = 64 * 1024):
+        self.name = name
+        self.target = target
+        self.batch = max(1, int(batch))
+        self.write_buffer = int(write_buffer)
+        self.stats = ModbusStats()
+        self.link = TcpServer(name, host, port, max_clients=max_clients, read_size=1024,
+                              on_connect=self._on_connect, on_data=self._on_data)
+
+    @property
+    def address(self) -> str:
+        return self.link.address
+
+    async def start(self) -> tuple[str, int]:
+        return await self.link.start()
+
+    async def close(self) -> None:
+        await self.link.close()
+
+    def _reply(self, client: Client, frame: bytes) -> None:
+        """Write a reply at once (no extra loop turn through the link's queue); a client
+        that does not read its replies loses them once ``write_buffer`` bytes are pending."""
+        transport = client.writer.transport
+        if client.closed or transport.is_closing():
+            return
+        if transport.get_write_buffer_size() > self.write_buffer:
+            self.stats.dropped += 1
+            return
+        client.writer.write(frame)
+
+    def _on_connect(self, client: Client) -> None:
+        client.state["session"] = TcpSession(self.target, self.stats)
+
+    async def _on_data(self, client: Client, data: bytes) -> None:
+        session: TcpSession = client.state["session"]
+        session.receive_data(data)
+        for _ in range(1 << 16):  # bounded by the data received (read_size bytes per call)
+            for frame in session.process(self.batch):
+                self._reply(client, frame)
+            if session.closed:
+                log.warning("%s: closing %s: %s", self.name, client.peer, session.close_reason)
+                self.link.disconnect(client)
+                return
+            if not session.has_frame():
+                return
+            await asyncio.sleep(0)  # a client pipelining many requests waits its turn
+
+
+class ModbusRtuServer:
+    """Modbus RTU on an emulated serial port: clients open ``path`` (a symlink to a pty).
+
+    baudrate [bit/s] paces the replies; parity ``N``/``E``/``O``; targets share the line.
+    """
+
+    def __init__(self, name: str, path: str | Path | None, targets: Iterable[ModbusTarget] = (), *,
+                 baudrate: int = 9600, parity: str = "N", stop_bits: int = 1):
+        if parity.upper() not in ("N", "E", "O"):
+            raise ValueError(f"{name}: parity must be N, E or O, got {parity!r}")
+        self.name = name
+        self.stats = ModbusStats()
+        self.session = RtuSession(targets, self.stats)
+        self.link = PtyLink(name, path, baudrate=baudrate, parity=parity.upper(), stop_bits=stop_bits,
+                            on_data=self._on_data)
+        self._timer: asyncio.TimerHandle | None = None
+
+    @property
+    def path(self) -> str:
+        return self.link.path
+
+    @property
+    def baudrate(self) -> int:
+        return self.link.baudrate
+
+    @property
+    def silence_time(self) -> float:
+        """[s] idle time that ends a frame: 3.5 characters, at least 2 ms (pty scheduling)."""
+        return max(3.5 * self.link.byte_time, 0.002)
+
+    def attach(self, target: ModbusTarget) -> None:
+        """Put another device on this line (a distinct address)."""
+        for t in self.session.targets:
+            if t.device_id == target.device_id:
+                raise ValueError(f"{self.name}: address {target.device_id} already used by {t.name}")
+        self.session.targets.append(target)
+
+    def detach(self, target: ModbusTarget) -> None:
+        if target in self.session.targets:
+            self.session.targets.remove(target)
+
+    async def start(self) -> str:
+        return await self.link.start()
+
+    async def close(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        await self.link.close()
+
+    def _on_data(self, data: bytes) -> None:
+        for frame in self.session.receive_data(data):
+            self.link.write(frame)
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if self.session.pending:
+            self._timer = asyncio.get_running_loop().call_later(self.silence_time, self._on_silence)
+
+    def _on_silence(self) -> None:
+        self._timer = None
+        for frame in self.session.silence():
+            self.link.write(frame)
+
+
+__all__ = ["ModbusRtuServer", "ModbusStats", "ModbusTarget", "ModbusTcpServer", "RtuSession", "TcpSession",
+           "WriteAction"]
