@@ -285,7 +285,7 @@ def check_settings(s: AcousticSettings, system_type: int = SYSTEM_1800) -> Setti
     system lacks, a frequency that disagrees with the ping mode's beams on an
     ARIS 1800 (48 beams = LF, 96 = HF), samplesPerBeam, samplePeriod,
     sampleStartDelay, pulseWidth or cyclePeriod outside their ranges, a
-    non-finite frame rate or gain. Constrained (applied with changes; cookie
+    non-finite frame rate or gain, a window longer than the longest cycle. Constrained (applied with changes; cookie
     goes to AppliedSettings and ConstrainedSettings): a cycle period too short
     for the window (raised), a frame rate above what the cycle period allows
     or outside 1..15 (clamped), a gain outside 0..24 dB (clamped).
@@ -303,14 +303,16 @@ def check_settings(s: AcousticSettings, system_type: int = SYSTEM_1800) -> Setti
             why.append(f"{name} {v} outside {lo}..{hi}")
     if not (math.isfinite(s.frame_rate) and math.isfinite(s.receiver_gain)):
         why.append("frame rate or gain is not a finite number")
+    need = s.sample_start_delay + s.samples_per_beam * s.sample_period + CYCLE_PERIOD_MARGIN
+    if need > CYCLE_PERIOD_RANGE[1]:
+        why.append(f"the window needs a {need} us cycle, more than {CYCLE_PERIOD_RANGE[1]} us")
     if why:
         return SettingsCheck("invalid", s, tuple(why))
     changes: dict[str, object] = {}
     notes: list[str] = []
-    need = s.sample_start_delay + s.samples_per_beam * s.sample_period + CYCLE_PERIOD_MARGIN
     cycle = s.cycle_period
     if cycle < need:
-        cycle = min(need, CYCLE_PERIOD_RANGE[1])
+        cycle = need
         changes["cycle_period"] = cycle
         notes.append(f"cyclePeriod raised to {cycle} us")
     max_rate = min(FRAME_RATE_RANGE[1], 1e6 / (cycle * PINGS_PER_FRAME.get(s.ping_mode, 1)))
