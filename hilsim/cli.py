@@ -12,9 +12,14 @@ from hilsim import __version__
 from hilsim.config import ConfigError
 
 
+_COMMON = argparse.ArgumentParser(add_help=False)
+_COMMON.add_argument("--log-level", default=argparse.SUPPRESS, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                     help="logging level (default INFO)")
+
+
 def _add_render(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "render",
+        "render", parents=[_COMMON],
         help="render the sonar and camera frames of a scenario at named positions or poses",
         description="Render the sonar frame (raw + fan PNG) and the camera image at one or more "
                     "vehicle poses and write them with a JSON of what was done.",
@@ -36,12 +41,49 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=None, help="seed for noise (default: the scenario's)")
 
 
+def _add_run(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run", parents=[_COMMON], help="run the live bridge: the simulation and every device the scenario wires up",
+        description="Build the world, the vehicle, the sensors and the scenario's devices and serve "
+                    "them until Ctrl-C/SIGTERM or --duration. Prints the endpoints when listening.")
+    p.add_argument("scenario", nargs="?", default=None,
+                   help="scenario folder, .toml file or bundled name (default: water_tank)")
+    p.add_argument("--fast", action="store_true", help="virtual clock: as fast as possible (tests, batch runs)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
+    p.add_argument("--endpoints", type=Path, default=None, help="write the endpoints as JSON to this file")
+    p.add_argument("--bind", default="127.0.0.1", help="address servers listen on (default 127.0.0.1)")
+    p.add_argument("--broadcast", default="127.0.0.1",
+                   help="destination of UDP status/beacon messages (default 127.0.0.1: stays on this machine)")
+    p.add_argument("--record", type=Path, default=None, help="also write the DIDSON-like stream to FILE.ddf")
+    p.add_argument("--seed", type=int, default=None, help="seed for noise (default: the scenario's)")
+    p.add_argument("--physics-rate", type=float, default=200.0, help="physics rate [Hz] (default 200)")
+    p.add_argument("--status-interval", type=float, default=5.0,
+                   help="seconds of simulated time between status lines (0: none)")
+    p.add_argument("--epoch", type=float, default=None,
+                   help="UNIX time stamped for simulated time 0 (default: now); fixes timestamps for "
+                        "byte-identical runs")
+
+
+def _add_record(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("record", parents=[_COMMON],
+                       help="record the DIDSON-like sonar stream of a scenario to a .ddf file",
+                       description="Run the scenario on the virtual clock and write N frames of its "
+                                   "DIDSON-like stream to a DDF file (the bytes a TCP client receives).")
+    p.add_argument("scenario", nargs="?", default=None)
+    p.add_argument("--out", type=Path, required=True, help="the .ddf file to write")
+    p.add_argument("--frames", type=int, default=20, help="number of frames (default 20)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--epoch", type=float, default=None, help="UNIX time stamped for simulated time 0")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hilsim", description="Hardware-in-the-loop bridge for AUVs.")
     ap.add_argument("--version", action="version", version=f"hilsim {__version__}")
     ap.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
     _add_render(sub)
+    _add_run(sub)
+    _add_record(sub)
     return ap
 
 
@@ -57,6 +99,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from hilsim.render import render_command
 
             return render_command(args)
+        if args.command in ("run", "record"):
+            from hilsim.runtime.run import record_command, run_command
+
+            return run_command(args) if args.command == "run" else record_command(args)
     except (ConfigError, FileNotFoundError, ValueError, KeyError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"hilsim {args.command}: error: {msg}", file=sys.stderr)

@@ -63,12 +63,14 @@ class RenderedFrame:
 
     frame: the simulator's frame (``image`` (n_samples, n_beams) uint8, ``intensity``
     float, ``ranges``, ``azimuths``, beams ascending from port); state: the vehicle
-    state at the ping; render_s: [s] wall time the render took.
+    state at the ping; render_s: [s] wall time the render took; altitude: [m] from the
+    vehicle straight down to the first surface (inf if none).
     """
 
     frame: "SonarFrame"
     state: "VehicleState"
     render_s: float
+    altitude: float = float("inf")
 
 
 class RenderFailed(RuntimeError):

@@ -5,8 +5,8 @@ decides what bytes mean; this module only moves them. Guarantees:
 
 * a client that reads too slowly loses whole messages (counted), never half
   of one, and never slows the others: each client has a queue of at most
-  ``queue_len`` messages and a transport buffer capped at ``write_buffer``
-  bytes, so memory per client is bounded;
+  ``queue_len`` messages, a transport buffer capped at ``write_buffer`` bytes
+  and (with ``sndbuf``) a capped kernel send buffer, so memory per client is bounded;
 * at most ``max_clients`` connections; more are refused with a log line;
 * whatever a client sends or however it disconnects (mid-message, reset,
   half-open), the server keeps serving the others.
@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import socket
 from dataclasses import dataclass, field
 from typing import Awaitable, Callable
 
@@ -68,7 +69,7 @@ class TcpServer:
 
     def __init__(self, name: str, host: str = "127.0.0.1", port: int = 0, *,
                  max_clients: int = 32, queue_len: int = 4, write_buffer: int = 256 * 1024,
-                 read_size: int = 4096, idle_timeout: float | None = None,
+                 read_size: int = 4096, idle_timeout: float | None = None, sndbuf: int | None = None,
                  on_connect: OnConnect | None = None, on_data: OnData | None = None,
                  on_disconnect: OnDisconnect | None = None) -> None:
         self.name = name
@@ -79,6 +80,7 @@ class TcpServer:
         self.write_buffer = write_buffer
         self.read_size = read_size
         self.idle_timeout = idle_timeout
+        self.sndbuf = sndbuf
         self.on_connect = on_connect
         self.on_data = on_data
         self.on_disconnect = on_disconnect
@@ -168,6 +170,10 @@ class TcpServer:
             writer.transport.abort()
             return
         writer.transport.set_write_buffer_limits(high=self.write_buffer)
+        sock = writer.get_extra_info("socket")
+        if self.sndbuf is not None and sock is not None:
+            # bound what the kernel holds for a client that does not read, too
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.sndbuf)
         c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len))
         self.clients[c.id] = c
         self.stats.accepted += 1

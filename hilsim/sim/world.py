@@ -62,6 +62,17 @@ class WorldObject:
     watertight: bool = True
 
 
+_LABELS = ("north", "south", "east", "west", "down", "up")
+
+
+def facet_codes(normals: F64) -> I64:
+    """(m,) index into ``("north", "south", "east", "west", "down", "up")`` of (m, 3) normals."""
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    axis = np.argmax(np.abs(n), axis=1)
+    negative = n[np.arange(len(n)), axis] < 0
+    return (2 * axis + negative).astype(np.int64)
+
+
 def facet_label(normal: F64) -> str:
     """Name of the dominant direction of a unit normal in NED words.
 
@@ -114,6 +125,7 @@ class World:
         self.triangles: F64 = np.concatenate(tris) if tris else np.zeros((0, 3, 3))
         self.tri_normal: F64 = np.concatenate(normals) if normals else np.zeros((0, 3))
         self.tri_object: I64 = np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64)
+        self.tri_facet: I64 = facet_codes(self.tri_normal)
         n_obj = len(self.objects)
         self.obj_impedance: F64 = np.array([o.material.impedance for o in self.objects] or [0.0])
         self.obj_color: F64 = np.array([o.material.color for o in self.objects] or [(0.0, 0.0, 0.0)], dtype=float)
@@ -156,15 +168,16 @@ class World:
         ``{"cuboid": {"south": 120, "up": 40, "total": 160}, ...}``
         """
         out: dict[str, dict[str, int]] = {}
-        idx = np.flatnonzero(hits.hit)
-        if idx.size == 0:
+        tri = hits.tri[hits.tri >= 0]
+        if tri.size == 0:
             return out
-        tris = hits.tri[idx]
-        uniq, counts = np.unique(tris, return_counts=True)
-        for tri_i, c in zip(uniq.tolist(), counts.tolist()):
-            name = self.objects[int(self.tri_object[tri_i])].name
-            label = facet_label(self.tri_normal[tri_i])
-            d = out.setdefault(name, {"total": 0})
-            d[label] = d.get(label, 0) + int(c)
-            d["total"] += int(c)
+        n_lab = len(_LABELS)
+        counts = np.bincount(self.tri_object[tri] * n_lab + self.tri_facet[tri],
+                             minlength=len(self.objects) * n_lab).reshape(-1, n_lab)
+        for i, row in enumerate(counts.tolist()):
+            total = sum(row)
+            if total:
+                d = {"total": total}
+                d.update({_LABELS[k]: c for k, c in enumerate(row) if c})
+                out[self.objects[i].name] = d
         return out

@@ -1,0 +1,268 @@
+"""The live bridge: a scenario's world, vehicle, sensors and devices, run together.
+
+``Bridge`` builds everything a scenario wires up and is the
+:class:`~hilsim.devices.base.DeviceContext` its devices see. One asyncio
+loop runs every link and the scheduler (physics at ``physics_rate``, each
+device's periodic events); sonar frames are rendered in a worker process.
+
+Lifecycle: ``await bridge.start()`` (returns the endpoints once everything
+listens) -> ``await bridge.run(duration)`` -> ``await bridge.close()``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Awaitable, Callable, Mapping, TypeVar
+
+import numpy as np
+
+from hilsim.config import ConfigError, Doc, load_toml
+from hilsim.devices import device_class
+from hilsim.devices.base import Device, Endpoint, RenderedFrame, RenderFailed
+from hilsim.resources import find_profile
+from hilsim.runtime.clock import RealTimeClock, VirtualClock
+from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, Scheduler, VehicleLoop
+from hilsim.runtime.worker import RenderWorker
+from hilsim.sim.scenario import Scenario, load_scenario
+from hilsim.sim.sonar_profile import SonarProfile, SonarSettings, load_sonar_profile
+from hilsim.sim.state import VehicleState
+from hilsim.sim.vehicle import Vehicle, load_vehicle_profile
+
+log = logging.getLogger("hilsim.bridge")
+T = TypeVar("T")
+
+LOOPBACK = "127.0.0.1"
+
+
+class Bridge:
+    """Everything a scenario wires up, run in one asyncio loop (+ the render worker).
+
+    fast: virtual clock, as fast as possible; bind: host servers listen on;
+    broadcast: destination of UDP status/beacons; record: optional ``.ddf``
+    recording of the first DIDSON-like stream; epoch: UNIX time [s] stamped
+    for simulation time 0 (default: the wall clock at start).
+    """
+
+    def __init__(self, scenario: Scenario | Path | str, *, fast: bool = False, bind: str = LOOPBACK,
+                 broadcast: str = LOOPBACK, seed: int | None = None, record: Path | str | None = None,
+                 physics_rate: float = DEFAULT_PHYSICS_RATE, run_dir: Path | str | None = None,
+                 epoch: float | None = None, status_interval: float = 5.0,
+                 worker_timeout: float = 10.0) -> None:
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        self.fast = fast
+        self.bind = bind
+        self.broadcast = broadcast
+        self.seed = self.scenario.seed if seed is None else int(seed)
+        self.record = Path(record) if record is not None else None
+        self.epoch = epoch
+        self.status_interval = status_interval
+        self._own_run_dir = run_dir is None
+        self.run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="hilsim-"))
+        self.scheduler = Scheduler(VirtualClock() if fast else RealTimeClock())
+        self.vehicle = self._build_vehicle(physics_rate)
+        self.worker = RenderWorker(self.scenario.path, self.seed, timeout=worker_timeout)
+        self.devices: list[Device] = []
+        self.endpoints: list[Endpoint] = []
+        self._shared: dict[tuple[Any, ...], Any] = {}
+        self._profiles: dict[str, SonarProfile] = {}
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._started = False
+        self._closed = False
+        self._wall0 = 0.0
+
+    # -- building --------------------------------------------------------------
+
+    def _build_vehicle(self, physics_rate: float) -> VehicleLoop:
+        spec = self.scenario.vehicle
+        if spec is None:
+            raise ConfigError(self.scenario.path, "vehicle", "the bridge needs a [vehicle] table")
+        profile = load_vehicle_profile(find_profile("vehicles", spec.profile, base=self.scenario.folder))
+        thrusters = profile.thruster_set() if profile.thrusters else None
+        state = VehicleState(time=0.0, position=np.array(spec.position, dtype=float),
+                             attitude=np.array([0.0, 0.0, spec.attitude[2]]))
+        return VehicleLoop(Vehicle(profile), thrusters, state, physics_rate=physics_rate)
+
+    def _device_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
+        doc = Doc(self.scenario.path, self.scenario.path.read_text(), self.scenario.raw)
+        raw = self.scenario.raw.get("devices", [])
+        if not isinstance(raw, list):
+            raise doc.error("devices", "expected an array of tables: [[devices]]")
+        out, names = [], set()
+        for i, t in enumerate(raw):
+            if not isinstance(t, Mapping):
+                raise doc.error(f"devices.{i}", "expected a table")
+            name, proto = t.get("name"), t.get("protocol")
+            if not isinstance(name, str) or not name:
+                raise doc.error(f"devices.{i}", "a device needs a 'name'")
+            if not isinstance(proto, str):
+                raise doc.error(f"devices.{name}", "a device needs a 'protocol'")
+            if name in names:
+                raise doc.error(f"devices.{name}", f"duplicate device name {name!r}")
+            names.add(name)
+            out.append((name, proto, {k: v for k, v in t.items() if k not in ("name", "protocol", "description")}))
+        return out
+
+    async def start(self) -> list[Endpoint]:
+        """Start the worker, every device and the physics; returns the endpoints."""
+        if self._started:
+            return self.endpoints
+        self._started = True
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._wall0 = time.time() if self.epoch is None else float(self.epoch)
+        specs = self._device_specs()
+        doc = Doc(self.scenario.path, self.scenario.path.read_text(), self.scenario.raw)
+        first_ddf = True
+        for name, proto, options in specs:
+            try:
+                cls = device_class(proto)
+            except KeyError as exc:
+                raise doc.error(f"devices.{name}.protocol", str(exc.args[0])) from None
+            try:
+                dev = cls(name, options, self)
+            except (ValueError, KeyError) as exc:
+                raise doc.error(f"devices.{name}", str(exc.args[0] if exc.args else exc)) from None
+            if proto == "ddf-stream" and first_ddf and self.record is not None:
+                dev.record_path = self.record  # type: ignore[attr-defined]
+                first_ddf = False
+            self.devices.append(dev)
+        if self.record is not None and not any(d.protocol == "ddf-stream" for d in self.devices):
+            raise ValueError("--record needs a ddf-stream device in the scenario")
+        if any(d.protocol in ("ddf-stream", "oculus", "aris") for d in self.devices):
+            await self.worker.start()
+        self.vehicle.attach(self.scheduler)
+        try:
+            for d in self.devices:
+                self.endpoints.extend(await d.start())
+        except BaseException:
+            await self.close()
+            raise
+        if isinstance(self.scheduler.clock, RealTimeClock):
+            self.scheduler.clock.reset()
+        if self.status_interval > 0:
+            self.scheduler.add("status", self.status_interval, self._log_status, priority=100,
+                               tolerance=self.status_interval)
+        return self.endpoints
+
+    # -- running ---------------------------------------------------------------
+
+    async def run(self, duration: float | None = None) -> None:
+        """Run until ``duration`` [s] of simulation time (None: until :meth:`stop`)."""
+        if not self._started:
+            await self.start()
+        await self.scheduler.run_async(until=duration)
+
+    def stop(self) -> None:
+        self.scheduler.stop()
+
+    async def close(self) -> None:
+        """Close every device and link, stop the worker, remove the run folder."""
+        if self._closed:
+            return
+        self._closed = True
+        for d in reversed(self.devices):
+            try:
+                await d.close()
+            except Exception:  # noqa: BLE001 - close the rest regardless
+                log.exception("closing device %s", d.name)
+        for key, link in reversed(list(self._shared.items())):
+            try:
+                await link.close()
+            except Exception:  # noqa: BLE001
+                log.exception("closing shared link %s", key)
+        for t in list(self._tasks):
+            t.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self.worker.close()
+        if self._own_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+
+    # -- DeviceContext ---------------------------------------------------------
+
+    def now(self) -> float:
+        return self.vehicle.state.time if self.fast else max(self.vehicle.state.time, self.scheduler.clock.now())
+
+    def wall_time(self, sim_time: float) -> float:
+        return self._wall0 + sim_time
+
+    def sonar_profile(self, name: str) -> SonarProfile:
+        path = str(find_profile("sonars", name, base=self.scenario.folder))
+        if path not in self._profiles:
+            self._profiles[path] = load_sonar_profile(path)
+        return self._profiles[path]
+
+    async def render(self, mount: str, profile: str, settings: SonarSettings | None = None, *,
+                     frame_index: int = 0) -> RenderedFrame:
+        state = self.vehicle.state
+        m = self.scenario.sensor(mount)
+        pose = state.pose @ m.mount
+        path = str(find_profile("sonars", profile, base=self.scenario.folder))
+        frame, seconds, altitude = await self.worker.render_sonar(path, pose, settings, state.time, frame_index,
+                                                                  state.position)
+        return RenderedFrame(frame, state, seconds, altitude)
+
+    async def altitude(self) -> float:
+        """[m] distance from the vehicle straight down to the first surface (inf if none)."""
+        return float(await self.worker.call("altitude", np.asarray(self.vehicle.state.position)))
+
+    async def shared(self, key: tuple[Any, ...], factory: Callable[[], Awaitable[T]]) -> T:
+        if key not in self._shared:
+            self._shared[key] = await factory()
+        return self._shared[key]  # type: ignore[no-any-return]
+
+    def defer(self, coro: Awaitable[Any]) -> Awaitable[Any] | None:
+        """For scheduler callbacks: in fast mode return ``coro`` (virtual time waits for it);
+        in real time run it as a task so the tick returns at once."""
+        if self.fast:
+            return coro
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return None
+
+    # -- status ----------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        s = self.vehicle.state
+        late = sum(ev.stats.late for ev in self.scheduler.events)
+        skipped = sum(ev.stats.skipped for ev in self.scheduler.events)
+        return {"time_s": round(s.time, 3), "depth_m": round(s.depth, 3),
+                "heading_deg": round(math.degrees(s.heading) % 360.0, 1), "late_ticks": late,
+                "skipped_ticks": skipped, "render_restarts": self.worker.restarts,
+                "devices": {d.name: d.status() for d in self.devices}}
+
+    def _log_status(self, t: float) -> None:
+        st = self.status()
+        parts = []
+        for name, ds in st["devices"].items():
+            if ds:
+                parts.append(name + "(" + ", ".join(f"{k} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
+                                                    for k, v in ds.items()) + ")")
+        log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d | %s", st["time_s"], st["depth_m"],
+                 st["heading_deg"], st["late_ticks"], " ".join(parts) or "no devices")
+
+
+def endpoints_table(endpoints: list[Endpoint]) -> str:
+    """A fixed-width text table of the endpoints."""
+    rows = [("DEVICE", "PROTOCOL", "TRANSPORT", "ADDRESS", "EXTRA")]
+    for e in endpoints:
+        rows.append((e.device, e.protocol, e.transport, e.address,
+                     " ".join(f"{k}={v}" for k, v in e.extra.items())))
+    widths = [max(len(r[i]) for r in rows) for i in range(5)]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+
+
+def write_endpoints(path: Path | str, endpoints: list[Endpoint]) -> None:
+    """Write the endpoints JSON atomically (readers never see a half-written file)."""
+    p = Path(path)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps([e.to_json() for e in endpoints], indent=2) + "\n")
+    os.replace(tmp, p)

@@ -1,0 +1,75 @@
+"""``hilsim run`` and ``hilsim record``: the bridge from the command line."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import math
+import signal
+import sys
+
+from hilsim.resources import find_scenario
+from hilsim.runtime.bridge import Bridge, endpoints_table, write_endpoints
+
+log = logging.getLogger("hilsim.run")
+
+
+async def _serve(bridge: Bridge, duration: float | None, endpoints_file: object) -> None:
+    loop = asyncio.get_running_loop()
+    stop_reason: list[str] = []
+
+    def on_signal(name: str) -> None:
+        if not stop_reason:
+            stop_reason.append(name)
+            log.info("%s: shutting down", name)
+        bridge.stop()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal, sig.name)
+    try:
+        endpoints = await bridge.start()
+        print(endpoints_table(endpoints), flush=True)
+        if endpoints_file is not None:
+            write_endpoints(endpoints_file, endpoints)  # type: ignore[arg-type]
+        mode = "fast (virtual clock)" if bridge.fast else "real time"
+        log.info("bridge running in %s%s", mode, f" for {duration:g} s" if duration else "; Ctrl-C to stop")
+        if not stop_reason:
+            await bridge.run(duration)
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        await bridge.close()
+        log.info("bridge stopped at t=%.2f s\n%s", bridge.vehicle.state.time, bridge.scheduler.report())
+
+
+def run_command(args: argparse.Namespace) -> int:
+    if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
+        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    bridge = Bridge(find_scenario(args.scenario), fast=args.fast, bind=args.bind, broadcast=args.broadcast,
+                    seed=args.seed, record=args.record, physics_rate=args.physics_rate,
+                    epoch=args.epoch, status_interval=args.status_interval)
+    asyncio.run(_serve(bridge, args.duration, args.endpoints))
+    return 0
+
+
+def record_command(args: argparse.Namespace) -> int:
+    if args.frames <= 0:
+        raise ValueError("--frames must be positive")
+    bridge = Bridge(find_scenario(args.scenario), fast=True, seed=args.seed, record=args.out,
+                    epoch=args.epoch, status_interval=0)
+
+    async def go() -> None:
+        await bridge.start()
+        dev = next(d for d in bridge.devices if d.protocol == "ddf-stream")
+        period = 1.0 / dev.rate  # type: ignore[attr-defined]
+        try:
+            while dev.frames_recorded < args.frames:  # type: ignore[attr-defined]
+                await bridge.run(bridge.vehicle.state.time + period)
+                print(f"\rrecorded {dev.frames_recorded}/{args.frames} frames", end="", file=sys.stderr)  # type: ignore[attr-defined]
+            print(file=sys.stderr)
+        finally:
+            await bridge.close()
+
+    asyncio.run(go())
+    return 0
