@@ -187,9 +187,11 @@ class DdfStreamDevice(Device):
     def _ping(self, t: float) -> Any:
         if not self._wanted():
             return None
-        if self._rendering:  # the previous frame is still rendering: this ping is lost
+        if self._rendering:
+            # the previous frame is still rendering: the sonar cannot ping this fast, so this
+            # ping never happens (counted; the frame rate drops, the numbering has no gap).
+            # A ping that was fired and then lost (worker crash) does leave a gap.
             self.busy_skips += 1
-            self.frame_number += 1
             return None
         self._rendering = True
         return self.ctx.defer(self._render_and_send(self.frame_number))  # type: ignore[attr-defined]
