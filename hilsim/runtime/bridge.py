@@ -146,6 +146,8 @@ class Bridge:
             raise
         if isinstance(self.scheduler.clock, RealTimeClock):
             self.scheduler.clock.reset()
+        if self.epoch is None:  # simulation time 0 is now, on the wall clock
+            self._wall0 = time.time() - self.scheduler.clock.now()
         if self.status_interval > 0:
             self.scheduler.add("status", self.status_interval, self._log_status, priority=100,
                                tolerance=self.status_interval)

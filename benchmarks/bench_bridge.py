@@ -1,0 +1,103 @@
+"""Live bridge benchmark: DIDSON-like stream frame rate and ping-to-client latency.
+
+Starts ``hilsim run`` on the water tank (real-time clock), connects 1 and then
+8 plain socket clients, and for each measures over ``--seconds``:
+  * the sustained frame rate every client receives [frames/s];
+  * the ping-to-client latency: arrival (wall clock) of a frame's last byte minus
+    the frame time in its header (the simulation time of the ping on the wall
+    clock) [ms], p50 / p99 / max over all clients' frames.
+Prints figures; never passes or fails.  Usage: python benchmarks/bench_bridge.py [--seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+FRAME = 1024 + 96 * 512
+
+
+def recv_exact(s: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        c = s.recv(n - len(buf))
+        if not c:
+            raise EOFError
+        buf += c
+    return bytes(buf)
+
+
+def measure(host: str, port: int, n_clients: int, seconds: float) -> dict:
+    results = [[] for _ in range(n_clients)]
+    stop = time.monotonic() + seconds
+
+    def client(k: int) -> None:
+        s = socket.create_connection((host, port), timeout=10)
+        recv_exact(s, 1024)
+        while time.monotonic() < stop:
+            raw = recv_exact(s, FRAME)
+            arrived = time.time()
+            num, us = struct.unpack_from("<iQ", raw, 0)
+            results[k].append((num, arrived, arrived - us / 1e6))
+        s.close()
+
+    ts = [threading.Thread(target=client, args=(k,)) for k in range(n_clients)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    rates, lat = [], []
+    for r in results:
+        if len(r) > 2:
+            rates.append((len(r) - 1) / (r[-1][1] - r[0][1]))
+            lat += [x[2] for x in r[1:]]
+    lat_ms = np.array(lat) * 1e3
+    return {"clients": n_clients, "rate_min": min(rates), "rate_mean": float(np.mean(rates)),
+            "p50": float(np.percentile(lat_ms, 50)), "p99": float(np.percentile(lat_ms, 99)),
+            "max": float(lat_ms.max()), "frames": sum(len(r) for r in results)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=10.0)
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp())
+    ep = tmp / "ep.json"
+    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", "--endpoints", str(ep), "--log-level", "WARNING",
+                             "--status-interval", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while not ep.exists():
+            if proc.poll() is not None:
+                raise SystemExit("bridge failed to start")
+            time.sleep(0.05)
+        e = next(x for x in json.loads(ep.read_text()) if x["protocol"] == "ddf-stream")
+        host, port = e["address"].rsplit(":", 1)
+        print(f"DIDSON-like stream, water tank, profile rate {e['frame_rate_hz']} Hz, 96 x 512 samples, "
+              f"96 x 1000 rays; {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
+        for n in (1, 8):
+            r = measure(host, int(port), n, args.seconds)
+            print(f"  {n} client(s): {r['rate_mean']:.1f} frames/s per client (slowest {r['rate_min']:.1f}); "
+                  f"ping-to-client latency p50 {r['p50']:.1f} ms, p99 {r['p99']:.1f} ms, max {r['max']:.1f} ms "
+                  f"({r['frames']} frames)")
+        period_ms = 1000.0 / float(e["frame_rate_hz"])
+        print(f"  (one frame period: {period_ms:.1f} ms)")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(10)
+
+
+if __name__ == "__main__":
+    main()
