@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 TSTAMP  := $(VENV)/.installed-test
 OUT     ?= out
 
-.PHONY: run test install install-test bench clean lint
+.PHONY: run render test install install-test bench clean lint
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -23,8 +23,14 @@ $(TSTAMP): pyproject.toml | $(BIN)/python
 install: $(STAMP)
 install-test: $(TSTAMP)
 
-# The main job: render the default scenario (the paper's water tank) at A, B, C.
+# The main job: the live bridge on the default scenario (the paper's water tank),
+# serving every device until Ctrl-C. Its endpoints are printed and written to $(OUT)/endpoints.json.
 run: $(STAMP)
+	mkdir -p $(OUT)
+	$(BIN)/hilsim run --endpoints $(OUT)/endpoints.json $(RUN_ARGS)
+
+# The paper's Fig. 4: sonar and camera frames at positions A, B, C.
+render: $(STAMP)
 	$(BIN)/hilsim render --at A,B,C --out $(OUT)
 
 test: $(TSTAMP)
