@@ -76,6 +76,19 @@ def _add_record(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epoch", type=float, default=None, help="UNIX time stamped for simulated time 0")
 
 
+def _add_experiment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("experiment", parents=[_COMMON],
+                       help="reproduce an experiment of the seed paper (water-tank)",
+                       description="water-tank: drive the vehicle forward 1.5 m above the floor, record the "
+                                   "sonar and camera at positions A, B and C, and write the paper's Fig. 4 and "
+                                   "the 96 x 1000 sampling vs artifact-free comparison figure.")
+    p.add_argument("name", choices=("water-tank",), help="which experiment")
+    p.add_argument("scenario", nargs="?", default=None, help="scenario (default: water_tank)")
+    p.add_argument("--out", type=Path, default=Path("out/experiment"), help="output folder")
+    p.add_argument("--speed", type=float, default=0.2, help="forward speed to hold [m/s] (default 0.2)")
+    p.add_argument("--seed", type=int, default=None)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hilsim", description="Hardware-in-the-loop bridge for AUVs.")
     ap.add_argument("--version", action="version", version=f"hilsim {__version__}")
@@ -84,6 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render(sub)
     _add_run(sub)
     _add_record(sub)
+    _add_experiment(sub)
     return ap
 
 
@@ -99,6 +113,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from hilsim.render import render_command
 
             return render_command(args)
+        if args.command == "experiment":
+            from hilsim.experiment import experiment_command
+
+            return experiment_command(args)
         if args.command in ("run", "record"):
             from hilsim.runtime.run import record_command, run_command
 
