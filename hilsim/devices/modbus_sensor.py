@@ -21,7 +21,8 @@ Options: transport, port, path, baudrate, parity, stop_bits, device_id (0: the
 map's default), map (a file in ``protocols/`` or the scenario folder), sensor
 (a profile reference, ``keller_serie30``), rate [Hz] (0: the profile's), mount
 (a scenario ``[[sensors]]`` name whose position is the pressure port's lever
-arm; "" the body origin), max_clients (per TCP server).
+arm; "" the body origin), max_clients (per TCP server), max_client_rate [requests/s]
+per TCP client (0: no limit; a client over it is read more slowly, nothing is lost).
 """
 
 from __future__ import annotations
@@ -95,6 +96,7 @@ class ModbusSensorDevice(Device):
     OPTIONS: ClassVar[Mapping[str, Any]] = {
         "transport": ["tcp", "rtu"], "port": 0, "path": "", "baudrate": 9600, "parity": "N", "stop_bits": 1,
         "device_id": 0, "map": "", "sensor": "", "rate": 0.0, "mount": "", "max_clients": 32,
+        "max_client_rate": 1000.0,
     }
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
@@ -167,7 +169,7 @@ class ModbusSensorDevice(Device):
         extra = {"device_id": self.target.device_id, "map": self.map.name}
         if "tcp" in self.transports:
             self.tcp = ModbusTcpServer(self.name, self.target, self.ctx.bind, int(o["port"]),
-                                       max_clients=int(o["max_clients"]))
+                                       max_clients=int(o["max_clients"]), max_rate=float(o["max_client_rate"]))
             host, port = await self.tcp.start()
             endpoints.append(Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}", extra))
         if "rtu" in self.transports:
@@ -227,6 +229,7 @@ class ModbusSensorDevice(Device):
             out["clients"] = self.tcp.link.stats.connected
             out["refused"] = self.tcp.link.stats.refused
             out["tcp_malformed"] = self.tcp.stats.malformed
+            out["throttled"] = self.tcp.stats.throttled
         if self.rtu is not None:
             out["crc_errors"] = self.rtu.stats.crc_errors
             out["rtu_ignored"] = self.rtu.stats.ignored

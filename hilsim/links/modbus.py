@@ -38,6 +38,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import struct
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Mapping
@@ -83,6 +84,7 @@ class ModbusStats:
     crc_errors: int = 0       # RTU frames dropped for a bad CRC
     malformed: int = 0        # TCP headers that closed the connection, RTU bytes dropped unframed
     dropped: int = 0          # replies not sent: the client did not read them
+    throttled: int = 0        # times a client went over its request-rate budget
     internal_errors: int = 0  # our bugs (logged, answered 04)
     exception_codes: dict[int, int] = field(default_factory=dict)
 
@@ -356,16 +358,28 @@ class ModbusTcpServer:
     """Modbus TCP on ``host:port`` (0: a free port) for one target.
 
     max_clients: connections beyond it are refused with a log line;
+    max_rate [requests/s]: each client's budget (token bucket of ``burst`` requests;
+    0: none); a client over it is not read from until it is back within budget, so
+    a flood slows only the flooder (TCP backpressure), never loses or garbles answers;
     batch: requests answered per client before letting the others in;
     write_buffer [bytes]: replies a client has not read beyond this are dropped (counted).
+    A peer that does not speak Modbus TCP is closed at once (holding it would let a
+    reconnecting one fill the client slots); those closings log one warning a second.
     """
 
     def __init__(self, name: str, target: ModbusTarget, host: str = "127.0.0.1", port: int = 0, *,
-                 max_clients: int = 32, batch: int = 4, write_buffer: int = 64 * 1024):
+                 max_clients: int = 32, max_rate: float = 1000.0, burst: int = 32, batch: int = 4,
+                 write_buffer: int = 64 * 1024):
+        if max_rate < 0 or burst < 1:
+            raise ValueError(f"{name}: max_rate must be >= 0 and burst >= 1")
         self.name = name
         self.target = target
+        self.max_rate = float(max_rate)
+        self.burst = int(burst)
         self.batch = max(1, int(batch))
         self.write_buffer = int(write_buffer)
+        self._last_warning = -1e9
+        self._unlogged = 0
         self.stats = ModbusStats()
         self.link = TcpServer(name, host, port, max_clients=max_clients, read_size=1024,
                               on_connect=self._on_connect, on_data=self._on_data)
@@ -380,6 +394,16 @@ class ModbusTcpServer:
     async def close(self) -> None:
         await self.link.close()
 
+    def _log_closing(self, client: Client, reason: str) -> None:
+        """One warning per second at most, with how many were not shown."""
+        now = time.monotonic()
+        if now - self._last_warning >= 1.0:
+            more = f" ({self._unlogged} more since the last such line)" if self._unlogged else ""
+            log.warning("%s: closing %s: %s%s", self.name, client.peer, reason, more)
+            self._last_warning, self._unlogged = now, 0
+        else:
+            self._unlogged += 1
+
     def _reply(self, client: Client, frame: bytes) -> None:
         """Write a reply at once (no extra loop turn through the link's queue); a client
         that does not read its replies loses them once ``write_buffer`` bytes are pending."""
@@ -393,15 +417,38 @@ class ModbusTcpServer:
 
     def _on_connect(self, client: Client) -> None:
         client.state["session"] = TcpSession(self.target, self.stats)
+        client.state["bucket"] = [float(self.burst), time.monotonic(), False]  # tokens, time, throttled
+
+    async def _allowance(self, client: Client) -> int:
+        """Requests this client may send now (waits while it is over its budget)."""
+        if self.max_rate <= 0:
+            return self.batch
+        bucket = client.state["bucket"]
+        for _ in range(100):  # bounded: each wait refills at least one token
+            now = time.monotonic()
+            bucket[0] = min(float(self.burst), bucket[0] + (now - bucket[1]) * self.max_rate)
+            bucket[1] = now
+            if bucket[0] >= 1.0:
+                return min(self.batch, int(bucket[0]))
+            if not bucket[2]:
+                bucket[2] = True
+                self.stats.throttled += 1
+                log.info("%s: %s over %g requests/s: throttled", self.name, client.peer, self.max_rate)
+            await asyncio.sleep((1.0 - bucket[0]) / self.max_rate)
+        return 1
 
     async def _on_data(self, client: Client, data: bytes) -> None:
         session: TcpSession = client.state["session"]
         session.receive_data(data)
         for _ in range(1 << 16):  # bounded by the data received (read_size bytes per call)
-            for frame in session.process(self.batch):
+            n = await self._allowance(client) if session.has_frame() else self.batch
+            frames = session.process(n)
+            if self.max_rate > 0:
+                client.state["bucket"][0] -= len(frames)
+            for frame in frames:
                 self._reply(client, frame)
             if session.closed:
-                log.warning("%s: closing %s: %s", self.name, client.peer, session.close_reason)
+                self._log_closing(client, session.close_reason)
                 self.link.disconnect(client)
                 return
             if not session.has_frame():
