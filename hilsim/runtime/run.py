@@ -48,7 +48,8 @@ def run_command(args: argparse.Namespace) -> int:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     bridge = Bridge(find_scenario(args.scenario), fast=args.fast, bind=args.bind, broadcast=args.broadcast,
                     seed=args.seed, record=args.record, physics_rate=args.physics_rate,
-                    epoch=args.epoch, status_interval=args.status_interval)
+                    epoch=args.epoch, status_interval=args.status_interval,
+                    worker_timeout=args.render_timeout)
     asyncio.run(_serve(bridge, args.duration, args.endpoints))
     return 0
 
