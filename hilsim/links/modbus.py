@@ -126,7 +126,7 @@ class ModbusTarget:
 
     def answers(self, unit: int, tcp: bool) -> bool:
         """Whether a request to address ``unit`` is ours (0 on RTU is broadcast, not 'ours')."""
-        if unit == self.device_id or (unit == self.map.transparent_id and unit is not None):
+        if unit == self.device_id or unit == self.map.transparent_id:
             return True
         return tcp and unit in (0, 255)
 

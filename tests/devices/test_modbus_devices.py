@@ -211,10 +211,10 @@ DEVICES = [
 
 
 @asynccontextmanager
-async def bridge_running(tmp_path: Path) -> AsyncIterator[Any]:
+async def bridge_running(tmp_path: Path, devices: list[dict[str, Any]] = DEVICES) -> AsyncIterator[Any]:
     from hilsim.runtime.bridge import Bridge
 
-    bridge = Bridge(bridge_scenario(DEVICES), run_dir=tmp_path, status_interval=0)
+    bridge = Bridge(bridge_scenario(devices), run_dir=tmp_path, status_interval=0)
     await bridge.start()
     task = asyncio.ensure_future(bridge.run())
     try:
@@ -351,5 +351,29 @@ def test_bridge_16_tcp_clients_at_100hz(tmp_path: Path) -> None:
             assert results == [100] * 16
             dev = next(d for d in bridge.devices if d.name == "depth")
             assert dev.status()["requests"] >= 1600 and "internal_errors" not in dev.status()
+
+    asyncio.run(main())
+
+
+def test_bridge_two_sensors_on_one_rs485_line(tmp_path: Path) -> None:
+    """Devices naming the same path share one line, as on an RS-485 bus: each answers
+    its own address, an unknown address gets silence, and the line closes with the bridge."""
+    devices = [{"name": "depth", "protocol": "modbus-keller", "transport": ["rtu"], "path": "bus.tty",
+                "baudrate": 38400},
+               {"name": "imu", "protocol": "modbus-witmotion", "transport": ["rtu"], "path": "bus.tty",
+                "baudrate": 38400}]
+
+    async def main() -> None:
+        async with bridge_running(tmp_path, devices) as bridge:
+            paths = {e.address for e in bridge.endpoints}
+            assert paths == {str(tmp_path / "bus.tty")}
+            c = await rtu_client(ep(bridge.endpoints, "imu", "pty"), timeout=0.3)
+            await asyncio.sleep(0.1)
+            assert abs(depth_of(await read_p1(c, unit=1)) - bridge.vehicle.state.depth) < DEPTH_TOL + 0.02
+            rr = await c.read_holding_registers(0x36, count=1, device_id=0x50)
+            assert abs(rr.registers[0] - 2048) < 150
+            assert await no_answer(c, 9)
+            c.close()
+        assert not (tmp_path / "bus.tty").exists()
 
     asyncio.run(main())
