@@ -462,7 +462,7 @@ def test_flood_does_not_starve_a_poller() -> None:
         await srv.close()
         rtts.sort()
         print(f"flood: poller p50 {rtts[50] * 1e3:.2f} ms p99 {rtts[98] * 1e3:.2f} ms, {srv.stats.replies} replies")
-        assert rtts[98] < 0.1, f"p99 {rtts[98] * 1e3:.1f} ms"
+        assert rtts[98] < 0.25, f"p99 {rtts[98] * 1e3:.1f} ms"  # starvation, not a benchmark
         assert srv.stats.internal_errors == 0 and srv.stats.replies > 1000
         assert srv.stats.throttled >= 4  # every flooder went over its 1000 requests/s budget
 
