@@ -66,7 +66,9 @@ class Bridge:
         self.status_interval = status_interval
         self._own_run_dir = run_dir is None
         self.run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="hilsim-"))
-        self.scheduler = Scheduler(VirtualClock() if fast else RealTimeClock())
+        # async_margin=0: never block the loop to sharpen a tick; every link shares this loop,
+        # and a tick a millisecond late costs nothing (the physics integrates to the tick's time)
+        self.scheduler = Scheduler(VirtualClock() if fast else RealTimeClock(async_margin=0.0))
         self.vehicle = self._build_vehicle(physics_rate)
         self.worker = RenderWorker(self.scenario.path, self.seed, timeout=worker_timeout)
         self.devices: list[Device] = []
