@@ -12,12 +12,22 @@ beyond that capacity are dropped and counted too.
 
 tty_baudrate [bit/s] paces the bytes on the pty (0: unpaced, like a USB CDC
 adapter, whose nominal baud rate means nothing).
+
+A host that reads slowly never gets a cut line (python-can's slcan reader
+raises on one): a frame is written only while fewer than ``max_backlog`` bytes
+wait unread (in the pty and in the link's queue), else it is dropped whole
+and counted. The pty link's own policy for a reader that falls behind (flush
+everything unread beyond 2 KiB, which can cut a line in half) is turned off
+for this link; this bus's whole-line dropping replaces it.
 """
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
+import struct
+import termios
 from pathlib import Path
 from typing import Any
 
@@ -29,15 +39,28 @@ from hilsim.protocols.can import CanFrame
 log = logging.getLogger(__name__)
 
 
+class _LinePtyLink(PtyLink):
+    """PtyLink without the flush of an unread backlog: that flush can cut a line in half, and the
+    slcan bus bounds the backlog itself by dropping whole lines."""
+
+    def _slave_backlog(self) -> int:
+        return 0
+
+
 class SlcanBus(CanBus):
     """path: the symlink clients open (None: only /dev/pts/N)."""
 
     transport = "slcan"
 
     def __init__(self, name: str, channel: str = "can0", *, path: str | os.PathLike[str] | None = None,
-                 bitrate: int | None = 1_000_000, burst: float = 0.05, tty_baudrate: int = 0) -> None:
+                 bitrate: int | None = 1_000_000, burst: float = 0.05, tty_baudrate: int = 0,
+                 max_backlog: int = 1536) -> None:
         super().__init__(name, channel, bitrate=bitrate, burst=burst)
-        self.link = PtyLink(name, Path(path) if path else None, baudrate=tty_baudrate, on_data=self._on_data)
+        self.max_backlog = max_backlog
+        self.reply_limit = max_backlog + 448  # replies may use a little more, still under the link's 2 KiB
+        self.replies_dropped = 0
+        self._written = 0  # bytes handed to the link
+        self.link = _LinePtyLink(name, Path(path) if path else None, baudrate=tty_baudrate, on_data=self._on_data)
         self.codec = slcan.SlcanAdapter(bitrate=bitrate or 1_000_000)
         self._in_budget: TokenBucket | None = None
         self._out_budget: TokenBucket | None = None
@@ -55,6 +78,7 @@ class SlcanBus(CanBus):
         out = super().status()
         out["channel_open"] = float(self.codec.is_open)
         out["pty_bytes_discarded"] = float(self.link.bytes_discarded)
+        out["replies_dropped"] = float(self.replies_dropped)
         return out
 
     def _budgets(self) -> None:
@@ -90,7 +114,28 @@ class SlcanBus(CanBus):
                 log.debug("%s: %s: %r", self.name, ev.reason, ev.line[:40])
         out = codec.data_to_send()
         if out:
-            self.link.write(out)
+            room = self.reply_limit - self.backlog()
+            if len(out) > room:  # the host is not reading: keep whole replies that fit, drop the rest
+                cut = max(out.rfind(b"\r", 0, max(room, 0)), out.rfind(b"\a", 0, max(room, 0))) + 1
+                self.replies_dropped += out[cut:].count(b"\r") + out[cut:].count(b"\a")
+                out = out[:cut]
+            if out:
+                self._write(out)
+
+    def _write(self, data: bytes) -> None:
+        self._written += len(data)
+        self.link.write(data)
+
+    def backlog(self) -> int:
+        """Bytes written for the host that it has not read yet (queued in the link or in the pty)."""
+        queued = self._written - self.link.bytes_out - self.link.bytes_discarded
+        unread = 0
+        if self.link.slave >= 0:
+            try:
+                unread = struct.unpack("i", fcntl.ioctl(self.link.slave, termios.FIONREAD, b"\0\0\0\0"))[0]
+            except OSError:
+                unread = 0
+        return max(0, queued) + unread
 
     def _to_peers(self, frame: CanFrame, exclude: Any) -> None:
         line = self.codec.encode_frame(frame)
@@ -99,4 +144,7 @@ class SlcanBus(CanBus):
         if self._out_budget is not None and not self._out_budget.take(frame.bits_on_wire):
             self.stats.dropped_out += 1
             return
-        self.link.write(line)
+        if self.backlog() + len(line) > self.max_backlog:
+            self.stats.dropped_out += 1  # the host is not keeping up: drop whole lines, never cut one
+            return
+        self._write(line)
