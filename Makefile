@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 TSTAMP  := $(VENV)/.installed-test
 OUT     ?= out
 
-.PHONY: run render test install install-test bench clean lint
+.PHONY: run render experiment test install install-test bench clean lint
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -21,7 +21,11 @@ $(TSTAMP): pyproject.toml | $(BIN)/python
 	touch $@ $(STAMP)
 
 install: $(STAMP)
-install-test: $(TSTAMP)
+install-# The paper's water-tank experiment: drive past A, B, C; Fig. 4 and the sampling comparison.
+experiment: $(STAMP)
+	$(BIN)/hilsim experiment water-tank --out $(OUT)/experiment
+
+test: $(TSTAMP)
 
 # The main job: the live bridge on the default scenario (the paper's water tank),
 # serving every device until Ctrl-C. Its endpoints are printed and written to $(OUT)/endpoints.json.
@@ -32,6 +36,10 @@ run: $(STAMP)
 # The paper's Fig. 4: sonar and camera frames at positions A, B, C.
 render: $(STAMP)
 	$(BIN)/hilsim render --at A,B,C --out $(OUT)
+
+# The paper's water-tank experiment: drive past A, B, C; Fig. 4 and the sampling comparison.
+experiment: $(STAMP)
+	$(BIN)/hilsim experiment water-tank --out $(OUT)/experiment
 
 test: $(TSTAMP)
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
