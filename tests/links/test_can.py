@@ -275,6 +275,44 @@ def test_socketcand_flooder_does_not_starve_a_well_behaved_client(loop_thread, t
 # ---------------------------------------------------------------- slcan pty specifics
 
 
+def test_slcan_slow_host_gets_whole_lines_only(loop_thread, tmp_path):
+    import serial
+
+    from hilsim.protocols.slcan import parse_frame_line
+
+    bus = make_bus(loop_thread, "slcan", tmp_path)
+    port = serial.Serial(bus.address, 115200, timeout=0.2)
+    try:
+        port.write(b"O\r")
+        assert port.read(1) == b"\r"
+        done = threading.Event()
+
+        async def burst() -> None:
+            for k in range(60):  # bursts of 24 frames every 5 ms: faster than the host reads
+                for i in range(24):
+                    bus.send(CanFrame((9 << 8) | (i % 8 + 1), k.to_bytes(2, "big") * 4))
+                await asyncio.sleep(0.005)
+            done.set()
+        fut = asyncio.run_coroutine_threadsafe(burst(), loop_thread.loop)
+        data = b""
+        for _ in range(100000):  # a slow host: small reads, with pauses, part-way through lines
+            chunk = port.read(13)
+            data += chunk
+            if not chunk and done.is_set():
+                break
+            time.sleep(0.002)
+        fut.result(10)
+        lines = data.split(b"\r")
+        assert lines[-1] == b""
+        bad = [ln for ln in lines[:-1] if not isinstance(parse_frame_line(ln), CanFrame)]
+        assert bad == []  # no line was cut
+        st = bus.status()
+        assert st["dropped_out"] > 0 and len(lines) - 1 + st["dropped_out"] == 60 * 24
+    finally:
+        port.close()
+        loop_thread.run(bus.close())
+
+
 def test_slcan_survives_client_reopen_and_drops_frames_while_closed(loop_thread, tmp_path):
     bus = make_bus(loop_thread, "slcan", tmp_path)
     got: list[CanFrame] = []
