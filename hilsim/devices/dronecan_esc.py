@@ -23,7 +23,8 @@ import logging
 from typing import Any, Callable
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import acquire_bus, mapping_text, resolve_mapping, vehicle_thrusters
+from hilsim.devices.thruster_io import (acquire_bus, check_can_options, mapping_text, resolve_mapping,
+                                       vehicle_thrusters)
 from hilsim.links.can import CanBus
 from hilsim.protocols import dronecan as dc
 from hilsim.protocols.can import CanFrame
@@ -51,6 +52,7 @@ class DroneCanEscDevice(Device):
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
+        check_can_options(name, self.options)
         self.thrusters = vehicle_thrusters(ctx, name)
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i,
                                        (0, dc.RAW_COMMAND_LEN_MAX - 1), "esc index")
@@ -132,6 +134,8 @@ class DroneCanEscDevice(Device):
             self.bus.send(frame)
 
     def _send_status(self, t: float) -> None:
+        if self.bus is None or not self.bus.has_listeners:
+            return
         for esc, index in self.mapping.items():
             tel = self.thrusters.telemetry(index)
             self._send(dc.EscStatus(error_count=0, voltage=tel.voltage, current=tel.input_current,

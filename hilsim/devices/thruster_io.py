@@ -63,12 +63,25 @@ def mapping_text(mapping: Mapping[int, int], thrusters: ThrusterSet) -> str:
     return ", ".join(f"{k}->{thrusters.names[v]}" for k, v in sorted(mapping.items()))
 
 
+def check_can_options(device: str, options: Mapping[str, Any]) -> None:
+    """ValueError for a CAN device's transport options that cannot work (at construction time)."""
+    transport = options["transport"]
+    if transport not in CAN_TRANSPORTS:
+        raise ValueError(f"device {device!r}: transport {transport!r} is not one of {', '.join(CAN_TRANSPORTS)}")
+    if not isinstance(options["channel"], str) or not options["channel"]:
+        raise ValueError(f"device {device!r}: channel must be a bus name such as 'can0'")
+    if transport == "socketcand" and not (isinstance(options["port"], int) and 0 <= options["port"] <= 65535):
+        raise ValueError(f"device {device!r}: port {options['port']!r} outside 0..65535")
+    bitrate = options.get("bitrate")
+    if bitrate is not None and not (isinstance(bitrate, int) and bitrate > 0):
+        raise ValueError(f"device {device!r}: bitrate must be a positive number of bit/s, got {bitrate!r}")
+
+
 async def acquire_bus(ctx: DeviceContext, device: str, options: Mapping[str, Any]) -> CanBus:
     """The CAN bus named by the device's options, shared with every device naming the same
     (transport, channel, port or path)."""
+    check_can_options(device, options)
     transport = str(options["transport"])
-    if transport not in CAN_TRANSPORTS:
-        raise ValueError(f"device {device!r}: transport {transport!r} is not one of {', '.join(CAN_TRANSPORTS)}")
     channel = str(options["channel"])
     bitrate = int(options["bitrate"]) if options.get("bitrate") else None
     kw: dict[str, Any] = {"channel": channel}

@@ -28,7 +28,8 @@ import logging
 from typing import Any, Callable
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import EscCounters, acquire_bus, celsius, mapping_text, resolve_mapping, vehicle_thrusters
+from hilsim.devices.thruster_io import (EscCounters, acquire_bus, celsius, check_can_options, mapping_text,
+                                       resolve_mapping, vehicle_thrusters)
 from hilsim.links.can import CanBus
 from hilsim.protocols import vesc_can as vc
 from hilsim.protocols.can import CanFrame
@@ -51,6 +52,7 @@ class VescCanDevice(Device):
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
+        check_can_options(name, self.options)
         self.thrusters = vehicle_thrusters(ctx, name)
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i + 1, (0, 255),
                                        "controller id")
@@ -131,10 +133,13 @@ class VescCanDevice(Device):
         if bus is None:
             return
         water = celsius(self.thrusters.water_temperature)
+        listening = bus.has_listeners
         for cid, index in self.mapping.items():
             tel = self.thrusters.telemetry(index)
             c = self.counters[cid]
             c.advance(t, tel)
+            if not listening:
+                continue  # nobody could hear it: skip the encoding, keep the counters going
             for msg in (vc.Status1(cid, round(tel.erpm), tel.motor_current, tel.duty),
                         vc.Status4(cid, water, celsius(tel.temperature), tel.input_current, 0.0),
                         vc.Status5(cid, int(c.tachometer), tel.voltage)):

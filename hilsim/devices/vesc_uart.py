@@ -110,7 +110,7 @@ class VescUartDevice(Device):
         index = self.mapping[cid]
         now = self.ctx.now()
         if isinstance(cmd, vu.GetValues):
-            self._reply(vu.encode_values(self._values(cid, index, now), cmd.mask))
+            self._reply(vu.encode_values(self._values(cid, index), cmd.mask))
             return
         if isinstance(cmd, vu.GetFwVersion):
             self._reply(vu.encode_fw_version(vu.FwVersion(hw_name="hilsim")))
@@ -135,7 +135,7 @@ class VescUartDevice(Device):
         for cid, index in self.mapping.items():
             self.counters[cid].advance(t, self.thrusters.telemetry(index))
 
-    def _values(self, cid: int, index: int, now: float) -> vu.Values:
+    def _values(self, cid: int, index: int) -> vu.Values:
         tel = self.thrusters.telemetry(index)
         c = self.counters[cid]
         water = celsius(self.thrusters.water_temperature)

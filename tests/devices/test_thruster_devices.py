@@ -384,3 +384,34 @@ def test_vrcsr_with_pyserial(bridge):
         assert port.read(1) == b""
     finally:
         port.close()
+
+
+# ---------------------------------------------------------------- configuration errors
+
+
+@pytest.mark.parametrize("protocol, options, match", [
+    ("vesc-can", {"mapping": {"1": "propeller"}}, "no thruster 'propeller'"),
+    ("vesc-can", {"mapping": {"300": 0}}, "controller id 300 out of range"),
+    ("vesc-can", {"transport": "udp"}, "transport 'udp' is not one of"),
+    ("vesc-can", {"status_rate_hz": 0}, "status_rate_hz"),
+    ("vesc-can", {"mapping": {"1": 8}}, "thruster index 8 out of range"),
+    ("dronecan", {"node_id": 0}, "node_id 0 outside"),
+    ("dronecan", {"mapping": {"20": 0}}, "esc index 20 out of range"),
+    ("vesc-uart", {"controller_id": 9}, "controller_id 9 is not in the mapping"),
+    ("vrcsr", {"node_ids": {"0": 129}}, "not the group id"),
+    ("vesc-can", {"statusrate": 5}, "did you mean 'status_rate_hz'"),
+])
+def test_bad_options_are_refused_with_a_clear_message(tmp_path, protocol, options, match):
+    from hilsim.devices import device_class
+
+    ctx = Bridge(scenario_with_thrusters(tmp_path), run_dir=tmp_path / "run")  # built, not started
+    with pytest.raises(ValueError, match=match):
+        device_class(protocol)("dev", options, ctx)
+
+
+def test_mapping_by_name_and_index(tmp_path):
+    from hilsim.devices.vesc_can import VescCanDevice
+
+    ctx = Bridge(scenario_with_thrusters(tmp_path), run_dir=tmp_path / "run")
+    dev = VescCanDevice("dev", {"mapping": {"23": "vertical_rear_right", "7": 0}}, ctx)
+    assert dev.mapping == {23: 7, 7: 0}

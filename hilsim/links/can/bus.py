@@ -114,6 +114,11 @@ class CanBus(ABC):
         self._to_peers(frame, None)
 
     @property
+    def has_listeners(self) -> bool:
+        """False when no peer could receive a frame now (devices may then skip encoding telemetry)."""
+        return True
+
+    @property
     @abstractmethod
     def address(self) -> str:
         """Where a client connects (``host:port``, a tty path, an interface name)."""

@@ -74,6 +74,10 @@ class SlcanBus(CanBus):
         return {"interface": "slcan", "channel": self.link.path, "bitrate": self.codec.bitrate,
                 "bus": self.channel}
 
+    @property
+    def has_listeners(self) -> bool:
+        return self.codec.is_open
+
     def status(self) -> dict[str, float]:
         out = super().status()
         out["channel_open"] = float(self.codec.is_open)

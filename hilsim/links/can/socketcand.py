@@ -49,6 +49,11 @@ class SocketcandBus(CanBus):
         return {"interface": "socketcand", "channel": self.channel, "host": self.server.host,
                 "port": self.server.port}
 
+    @property
+    def has_listeners(self) -> bool:
+        now = time.monotonic()
+        return any(self._ready(c, now) for c in self.server.clients.values())
+
     def status(self) -> dict[str, float]:
         out = super().status()
         out["refused"] = float(self.server.stats.refused)
