@@ -62,6 +62,8 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epoch", type=float, default=None,
                    help="UNIX time stamped for simulated time 0 (default: now); fixes timestamps for "
                         "byte-identical runs")
+    p.add_argument("--pty-dir", type=Path, default=None,
+                   help="folder for the emulated serial ports' symlinks (default: a fresh temporary folder)")
     p.add_argument("--render-timeout", type=float, default=10.0,
                    help="seconds a frame may take before the render worker is deemed hung and restarted")
 

@@ -103,6 +103,12 @@ class DeviceContext(Protocol):
         """Render a sonar frame from the sensor mount ``mount`` at the current state, with the
         sonar profile ``profile`` and ``settings``; raises :class:`RenderFailed`."""
 
+    def pty_path(self, option: "str | Path | None", default: str) -> Path:
+        """A device's pty symlink path: inside the run folder (absolute paths and ``..`` refused)."""
+
+    def output_path(self, option: "str | Path") -> Path:
+        """A file a scenario asks a device to write: inside the scenario's folder."""
+
     async def shared(self, key: tuple[Any, ...], factory: Callable[[], Awaitable[T]]) -> T:
         """A link shared by several devices (a CAN bus): created once by ``factory``, closed
         by the bridge at shutdown (it must have ``async close()``)."""

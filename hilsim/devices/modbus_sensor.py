@@ -184,13 +184,13 @@ class ModbusSensorDevice(Device):
     async def _start_rtu(self, serial: dict[str, Any]) -> None:
         path = str(self.options["path"])
         if not path:  # a line of its own
-            self.rtu = ModbusRtuServer(self.name, Path(self.ctx.run_dir) / f"{self.name}.tty", [self.target],
+            self.rtu = ModbusRtuServer(self.name, self.ctx.pty_path(None, f"{self.name}.tty"), [self.target],
                                        **serial)
             self._own_rtu = True
             await self.rtu.start()
             return
         # an explicit path: devices naming the same one share the line (an RS-485 bus)
-        full = Path(path) if Path(path).is_absolute() else Path(self.ctx.run_dir) / path
+        full = self.ctx.pty_path(path, path)
 
         async def factory() -> ModbusRtuServer:
             srv = ModbusRtuServer(f"modbus-rtu:{full.name}", full, [], **serial)

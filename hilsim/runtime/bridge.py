@@ -217,6 +217,17 @@ class Bridge:
         """[m] distance from the vehicle straight down to the first surface (inf if none)."""
         return float(await self.worker.call("altitude", np.asarray(self.vehicle.state.position)))
 
+    def pty_path(self, option: str | os.PathLike[str] | None, default: str) -> Path:
+        """Where a device's pty symlink goes: ``option`` (a name or relative path) or ``default``,
+        inside the run folder (``hilsim run --pty-dir``; a fresh temporary folder by default).
+        A scenario is data and may not place files elsewhere: absolute paths and ``..`` are refused."""
+        return path_inside(self.run_dir, option or default, "pty path", "choose the folder with --pty-dir")
+
+    def output_path(self, option: str | os.PathLike[str]) -> Path:
+        """A file a scenario asks a device to write (a recording): relative to the scenario's
+        folder and inside it. Recordings anywhere else are asked for on the command line."""
+        return path_inside(self.scenario.folder, option, "output path", "record elsewhere with hilsim run --record")
+
     async def shared(self, key: tuple[Any, ...], factory: Callable[[], Awaitable[T]]) -> T:
         if key not in self._shared:
             self._shared[key] = await factory()
@@ -252,6 +263,22 @@ class Bridge:
                                                     for k, v in ds.items()) + ")")
         log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d | %s", st["time_s"], st["depth_m"],
                  st["heading_deg"], st["late_ticks"], " ".join(parts) or "no devices")
+
+
+def path_inside(base: Path, rel: str | os.PathLike[str], what: str = "path", hint: str = "") -> Path:
+    """``base / rel``, refusing absolute paths and anything that leaves ``base`` (``..``, symlinked
+    folders). The last component is not resolved: it may be a symlink we own (a pty)."""
+    p = Path(rel)
+    hint = f" ({hint})" if hint else ""
+    if p.is_absolute():
+        raise ValueError(f"{what} {str(rel)!r} is absolute; scenario paths must stay inside {base}{hint}")
+    if p.name in ("", ".", ".."):
+        raise ValueError(f"{what} {str(rel)!r} does not name a file{hint}")
+    full = (base / p).parent.resolve() / p.name
+    if base.resolve() not in full.parents:
+        raise ValueError(f"{what} {str(rel)!r} leaves {base}{hint}")
+    full.parent.mkdir(parents=True, exist_ok=True)
+    return full
 
 
 def endpoints_table(endpoints: list[Endpoint]) -> str:

@@ -49,7 +49,7 @@ def run_command(args: argparse.Namespace) -> int:
     bridge = Bridge(find_scenario(args.scenario), fast=args.fast, bind=args.bind, broadcast=args.broadcast,
                     seed=args.seed, record=args.record, physics_rate=args.physics_rate,
                     epoch=args.epoch, status_interval=args.status_interval,
-                    worker_timeout=args.render_timeout)
+                    worker_timeout=args.render_timeout, run_dir=args.pty_dir)
     asyncio.run(_serve(bridge, args.duration, args.endpoints))
     return 0
 

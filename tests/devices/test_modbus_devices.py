@@ -57,6 +57,11 @@ class SmallContext:
         self.seed = seed
         self.fast = False
 
+
+    def pty_path(self, option, default):
+        from hilsim.runtime.bridge import path_inside
+
+        return path_inside(self.run_dir, option or default)
     def now(self) -> float:
         return max(self.vehicle.state.time, self.scheduler.clock.now())
 

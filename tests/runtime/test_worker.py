@@ -63,6 +63,7 @@ def test_bridge_keeps_streaming_through_a_worker_crash_or_hang(tmp_path, fault):
         after = [read_frame(s, 96, 512).number for _ in range(8)]
         resumed_after = time.monotonic() - t0
         s.close()
+        time.sleep(1.5)  # one more status line after the restart
         log = b.log()
         assert "restarting it" in log, log[-2000:]
         assert worker_pid(log) != pid
