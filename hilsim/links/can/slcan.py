@@ -54,10 +54,10 @@ class SlcanBus(CanBus):
 
     def __init__(self, name: str, channel: str = "can0", *, path: str | os.PathLike[str] | None = None,
                  bitrate: int | None = 1_000_000, burst: float = 0.05, tty_baudrate: int = 0,
-                 max_backlog: int = 1536) -> None:
+                 max_backlog: int = 3072) -> None:
         super().__init__(name, channel, bitrate=bitrate, burst=burst)
         self.max_backlog = max_backlog
-        self.reply_limit = max_backlog + 448  # replies may use a little more, still under the link's 2 KiB
+        self.reply_limit = max_backlog + 512  # replies may use a little more (all within the tty buffer, 4 KiB)
         self.replies_dropped = 0
         self._written = 0  # bytes handed to the link
         self.link = _LinePtyLink(name, Path(path) if path else None, baudrate=tty_baudrate, on_data=self._on_data)
