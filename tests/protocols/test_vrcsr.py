@@ -113,3 +113,17 @@ def test_propulsion_payload_rules():
     assert vrcsr.PropulsionCommand.decode(b"\xaa\x01" + bytes(3)) is None      # not whole floats
     assert vrcsr.PropulsionCommand.decode(b"\xab\x01") is None                 # not the propulsion command
     assert vrcsr.PropulsionCommand(1, (2.0, -3.0)).payload()[2:] == struct.pack("<ff", 1.0, -1.0)  # clamped
+
+
+@settings(max_examples=200)
+@given(st.lists(st.floats(-1, 1, width=32), max_size=8), st.integers(0, 200), st.binary(min_size=1, max_size=4),
+       st.integers(0, 40))
+def test_mutated_and_truncated_packets_never_raise_and_resync(powers, index, mutation, cut):
+    wire = bytearray(independent_request(powers, 4))
+    i = index % len(wire)
+    wire[i:i + len(mutation)] = mutation
+    wire = wire[:max(1, len(wire) - cut)]
+    good = independent_request([0.25], 5)
+    for one in (False, True):
+        got, _ = feed(bytes(wire) + good, one)
+        assert got[-1].payload == good[10:-4]
