@@ -23,8 +23,8 @@ import logging
 from typing import Any, Callable
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import (acquire_bus, check_can_options, mapping_text, resolve_mapping,
-                                       vehicle_thrusters)
+from hilsim.devices.thruster_io import (acquire_bus, bus_location, check_can_options, mapping_text,
+                                       resolve_mapping, vehicle_thrusters)
 from hilsim.links.can import CanBus
 from hilsim.protocols import dronecan as dc
 from hilsim.protocols.can import CanFrame
@@ -53,6 +53,7 @@ class DroneCanEscDevice(Device):
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         check_can_options(name, self.options)
+        bus_location(ctx, self.options)  # a pty path that leaves the run folder fails here, with the scenario line
         self.thrusters = vehicle_thrusters(ctx, name)
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i,
                                        (0, dc.RAW_COMMAND_LEN_MAX - 1), "esc index")

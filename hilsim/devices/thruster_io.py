@@ -5,7 +5,6 @@ mapping from the scenario, the CAN bus they attach to, and the ESC's running cou
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from hilsim.devices.base import DeviceContext
@@ -77,6 +76,18 @@ def check_can_options(device: str, options: Mapping[str, Any]) -> None:
         raise ValueError(f"device {device!r}: bitrate must be a positive number of bit/s, got {bitrate!r}")
 
 
+def bus_location(ctx: DeviceContext, options: Mapping[str, Any]) -> Any:
+    """What tells one bus of a transport from another: the socketcand port, the slcan pty path
+    (inside the run folder; ValueError for a path that leaves it), the interface name."""
+    transport = str(options["transport"])
+    channel = str(options["channel"])
+    if transport == "socketcand":
+        return int(options["port"])
+    if transport == "slcan":
+        return str(ctx.pty_path(options["path"], f"slcan-{channel}"))
+    return channel
+
+
 async def acquire_bus(ctx: DeviceContext, device: str, options: Mapping[str, Any]) -> CanBus:
     """The CAN bus named by the device's options, shared with every device naming the same
     (transport, channel, port or path)."""
@@ -84,15 +95,12 @@ async def acquire_bus(ctx: DeviceContext, device: str, options: Mapping[str, Any
     transport = str(options["transport"])
     channel = str(options["channel"])
     bitrate = int(options["bitrate"]) if options.get("bitrate") else None
+    where = bus_location(ctx, options)
     kw: dict[str, Any] = {"channel": channel}
     if transport == "socketcand":
-        where: Any = int(options["port"])
         kw.update(host=ctx.bind, port=where, bitrate=bitrate, max_clients=int(options["max_clients"]))
     elif transport == "slcan":
-        where = str(options["path"] or Path(ctx.run_dir) / f"slcan-{channel}")
         kw.update(path=where, bitrate=bitrate)
-    else:
-        where = channel
     cls = bus_class(transport)
 
     async def make() -> CanBus:

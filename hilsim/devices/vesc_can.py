@@ -17,7 +17,7 @@ temperature is the water's (the model has no FET thermal model).
 
 Options: transport (socketcand | slcan | socketcan | virtual), channel (bus
 name, e.g. can0), port (socketcand; 0 picks one), path (slcan pty symlink;
-default ``<run_dir>/slcan-<channel>``), bitrate [bit/s], status_rate_hz,
+inside the run folder, default ``slcan-<channel>``), bitrate [bit/s], status_rate_hz,
 mapping (``{controller_id = thruster}``; default controller i+1 drives thruster i),
 max_clients (socketcand).
 """
@@ -28,8 +28,8 @@ import logging
 from typing import Any, Callable
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import (EscCounters, acquire_bus, celsius, check_can_options, mapping_text,
-                                       resolve_mapping, vehicle_thrusters)
+from hilsim.devices.thruster_io import (EscCounters, acquire_bus, bus_location, celsius, check_can_options,
+                                       mapping_text, resolve_mapping, vehicle_thrusters)
 from hilsim.links.can import CanBus
 from hilsim.protocols import vesc_can as vc
 from hilsim.protocols.can import CanFrame
@@ -53,6 +53,7 @@ class VescCanDevice(Device):
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         check_can_options(name, self.options)
+        bus_location(ctx, self.options)  # a pty path that leaves the run folder fails here, with the scenario line
         self.thrusters = vehicle_thrusters(ctx, name)
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i + 1, (0, 255),
                                        "controller id")

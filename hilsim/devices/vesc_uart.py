@@ -11,14 +11,13 @@ model; FET temperature = the water's), FW_VERSION. Other packets are counted
 and get no reply. Replies leave at the baud rate (the pty link paces them).
 Garbage, truncated packets and bad CRCs are counted and skipped.
 
-Options: path (pty symlink; default ``<run_dir>/<name>``), baudrate,
+Options: path (pty symlink in the run folder; default the device name), baudrate,
 controller_id, mapping (``{controller_id = thruster}``; default i+1 -> thruster i).
 """
 
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint
@@ -43,6 +42,7 @@ class VescUartDevice(Device):
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.thrusters = vehicle_thrusters(ctx, name)
+        self.path = ctx.pty_path(self.options["path"], name)  # inside the run folder
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i + 1, (0, 255),
                                        "controller id")
         self.controller_id = int(self.options["controller_id"])
@@ -60,8 +60,7 @@ class VescUartDevice(Device):
         self.unknown_ids = 0
 
     async def start(self) -> list[Endpoint]:
-        path = self.options["path"] or Path(self.ctx.run_dir) / self.name
-        self.link = PtyLink(self.name, path, baudrate=int(self.options["baudrate"]), on_data=self._on_data)
+        self.link = PtyLink(self.name, self.path, baudrate=int(self.options["baudrate"]), on_data=self._on_data)
         await self.link.start()
         self._event = self.ctx.scheduler.add(f"{self.name}.counters", COUNTER_PERIOD, self._count, priority=20)
         log.info("%s: VESC UART on %s (%d baud), controller %d, CAN ids %s", self.name, self.link.path,

@@ -11,7 +11,7 @@ bus current [A], temperature [degC], fault 0), 0x01 an ACK (device type
 only). Other CSR reads/writes are not emulated (counted, no reply). Replies
 leave at the baud rate; garbage and bad CRCs are counted and skipped.
 
-Options: path (pty symlink; default ``<run_dir>/<name>``), baudrate,
+Options: path (pty symlink in the run folder; default the device name), baudrate,
 group_id, mapping (``{motor_id = thruster}``; default motor id i drives
 thruster i), node_ids (``{motor_id = node_id}``; default motor id + 1),
 device_type (the byte the responses carry).
@@ -20,7 +20,6 @@ device_type (the byte the responses carry).
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any, Mapping
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint
@@ -45,6 +44,7 @@ class VrcsrDevice(Device):
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.thrusters = vehicle_thrusters(ctx, name)
+        self.path = ctx.pty_path(self.options["path"], name)  # inside the run folder
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i, (0, 62),
                                        "motor id")
         node_ids = self.options["node_ids"]
@@ -66,8 +66,7 @@ class VrcsrDevice(Device):
         self.bad_payloads = 0
 
     async def start(self) -> list[Endpoint]:
-        path = self.options["path"] or Path(self.ctx.run_dir) / self.name
-        self.link = PtyLink(self.name, path, baudrate=int(self.options["baudrate"]), on_data=self._on_data)
+        self.link = PtyLink(self.name, self.path, baudrate=int(self.options["baudrate"]), on_data=self._on_data)
         await self.link.start()
         log.info("%s: VRCSR on %s (%d baud), group 0x%02X, motors %s", self.name, self.link.path,
                  self.link.baudrate, self.group_id, mapping_text(self.mapping, self.thrusters))

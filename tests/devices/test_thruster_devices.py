@@ -400,6 +400,9 @@ def test_vrcsr_with_pyserial(bridge):
     ("vesc-uart", {"controller_id": 9}, "controller_id 9 is not in the mapping"),
     ("vrcsr", {"node_ids": {"0": 129}}, "not the group id"),
     ("vesc-can", {"statusrate": 5}, "did you mean 'status_rate_hz'"),
+    ("dronecan", {"path": "../outside"}, "leaves"),
+    ("vesc-uart", {"path": "/dev/ttyUSB0"}, "absolute"),
+    ("vrcsr", {"path": "../../x"}, "leaves"),
 ])
 def test_bad_options_are_refused_with_a_clear_message(tmp_path, protocol, options, match):
     from hilsim.devices import device_class
