@@ -230,13 +230,15 @@ class VehicleLoop:
 
     def physics_tick(self, t: float) -> None:
         """Advance the state to time ``t`` [s]."""
-        dt = t - self.state.time
+        state = self.state
+        dt = t - state.time
         if dt <= 1e-12:
             return
-        if self.thrusters is not None:
-            self.state = self.vehicle.step_with_thrusters(self.state, dt, self.thrusters, self.current)
+        thrusters = self.thrusters
+        if thrusters is not None:
+            self.state = self.vehicle.step_with_thrusters(state, dt, thrusters, self.current)
         else:
-            self.state = self.vehicle.step(self.state, dt, self.wrench, self.current)
+            self.state = self.vehicle.step(state, dt, self.wrench, self.current)
 
     def attach(self, scheduler: Scheduler, sensors: Sequence[Any] = (),
                on_reading: Callable[[Any, Any], None] | None = None) -> list[PeriodicEvent]:

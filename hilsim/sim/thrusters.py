@@ -33,6 +33,7 @@ voltage and a first-order winding temperature.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,10 @@ from hilsim.sim.geometry import F64
 COMMAND_KINDS = ("normalized", "duty", "rpm", "erpm", "current")
 _RPM = 2.0 * math.pi / 60.0  # [rad/s] per [rev/min]
 _THERMAL_STEP = 0.05  # [s] the winding temperature is advanced at most this often
+_EVENT_MARGIN = 1.0 + 1e-12  # re-anchor a hair early rather than a tick late
+_F_FLOOR = 1e-30  # re-anchor a group before its decay factor underflows
+_exp = math.exp
+_RENORMALISE = 4096  # re-anchorings between two fresh sums of W0 and W1
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,12 +170,12 @@ class ThrusterTelemetry:
 
 
 def target_speed(profile: ThrusterProfile, kind: str, value: float, supply_voltage: float) -> float:
-    """Target speed fraction ``s*`` [1] for a command ``value`` of ``kind`` (see module doc)."""
-    vmax = min(1.0, supply_voltage / profile.nominal_voltage)
-    if kind in ("normalized", "duty"):
-        frac = max(-1.0, min(1.0, value))
+    """Target speed fraction ``s*`` [1] for a command ``value`` of ``kind`` (see module doc).
+    A NaN command is a zero target."""
+    if kind == "normalized" or kind == "duty":
+        frac = -1.0 if value < -1.0 else 1.0 if value > 1.0 else value  # NaN stays NaN
         s = frac * supply_voltage / profile.nominal_voltage
-    elif kind in ("rpm", "erpm"):
+    elif kind == "rpm" or kind == "erpm":
         rpm = value / profile.pole_pairs if kind == "erpm" else value
         s = frac = rpm / profile.max_rpm
     elif kind == "current":
@@ -178,9 +183,12 @@ def target_speed(profile: ThrusterProfile, kind: str, value: float, supply_volta
         s = math.copysign(math.sqrt(min(abs(frac), 1.0)), frac)
     else:
         raise ValueError(f"unknown command kind {kind!r}; expected one of {COMMAND_KINDS}")
-    if not math.isfinite(frac) or abs(frac) < profile.dead_band:
+    if not math.isfinite(frac) or -profile.dead_band < frac < profile.dead_band:
         return 0.0
-    return max(-vmax, min(vmax, s))
+    vmax = supply_voltage / profile.nominal_voltage
+    if vmax > 1.0:
+        vmax = 1.0
+    return -vmax if s < -vmax else vmax if s > vmax else s
 
 
 @dataclass(frozen=True)
@@ -239,13 +247,28 @@ def allocate_wrench(matrix: F64, wrench: F64, lower: F64, upper: F64,
 
 
 class ThrusterSet:
-    """The thrusters of one vehicle and their ESC state (mutable; arrays of n).
+    """The thrusters of one vehicle and their ESC state (mutable; n thrusters).
 
     Device code calls :meth:`command` and :meth:`telemetry`; the physics tick
-    calls :meth:`wrench` then :meth:`advance`. Times ``now`` [s] are the
-    simulation clock's. ``matrix`` (6, n) maps thrusts [N] to the body wrench;
+    calls :meth:`wrench` then :meth:`advance` (or both at once through
+    ``Vehicle.step_with_thrusters``). Times ``now`` [s] are the simulation
+    clock's. ``matrix`` (6, n) maps thrusts [N] to the body wrench;
     ``max_thrust`` / ``min_thrust`` (n,) [N] are the reachable thrusts at the
     supply voltage (the allocation's limits).
+
+    Rotor state in closed form, so that a physics tick costs O(1) rather than
+    O(n): thrusters sharing a time constant form a group with one decay factor
+    ``F = exp(-(t - t_anchor) / tau)``, and each speed is ``s_i = target_i +
+    dev_i F``, the exact first-order lag. Between events every thrust lies on
+    one straight piece of its (piecewise-linear) curve, ``a_j + b_j s``, so the
+    wrench is ``W0 + W1 F``. An event is a speed reaching a knot of its curve,
+    a zero target's speed entering the dead band (each foreseen as the F at
+    which it happens), a command or the watchdog changing a target; at an
+    event only the thrusters concerned are re-anchored and W0, W1 change by
+    their terms' change (:meth:`_rebuild`). The decay factors are reset to 1
+    and the sums taken afresh before F could underflow and every
+    ``_RENORMALISE`` re-anchorings. The result equals stepping every rotor and
+    interpolating its thrust each tick, to rounding (tests hold the two equal).
     """
 
     def __init__(self, thrusters: Sequence[Thruster], supply_voltage: float | None = None,
@@ -268,18 +291,47 @@ class ThrusterSet:
         self._profiles = profiles
         self._shared = profiles[0] if all(p is profiles[0] for p in profiles) else None
         # per-thruster state as Python lists: cheaper than numpy for n ~ 8
-        self._tau = [p.time_constant for p in profiles]
         self._timeout = [p.watchdog_timeout for p in profiles]
         self._dead = [p.dead_band for p in profiles]
-        self._speed = [0.0] * n
-        self._target = [0.0] * n     # target speed fraction (0 once the watchdog has tripped)
+        self._target = [0.0] * n    # target speed fraction (0 once the watchdog has tripped)
+        self._dev = [0.0] * n       # speed = target + dev * F of the thruster's group
         self._cmd_time = [-math.inf] * n
         self._timed_out = [True] * n
-        self._expiry = math.inf      # [s] earliest time a live command goes stale
+        self._expiry = math.inf     # [s] earliest time a live command goes stale
         self._temp = [self.water_temperature] * n
         self._thermal_dt = 0.0
-        self._alpha: tuple[float, list[float]] = (-1.0, [])
+        # steady winding temperature rise [K] per s^4: max_current^2 winding_resistance thermal_resistance
+        self._heat = [p.max_current ** 2 * p.winding_resistance * p.thermal_resistance for p in profiles]
+        self._thermal_tau = [p.thermal_time_constant for p in profiles]
+        self._thermal_taus = sorted(set(self._thermal_tau))
         self._now = 0.0
+        # the curves as straight pieces: thrust = a[j] + b[j] s on knots[j] <= s <= knots[j + 1]
+        pieces: dict[int, tuple[list[float], list[float], list[float]]] = {}
+        for p in profiles:
+            if id(p) not in pieces:
+                xp, fp = p.curve_speed.tolist(), p.curve_thrust.tolist()
+                b = [(fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) for j in range(len(xp) - 1)]
+                pieces[id(p)] = (xp, [fp[j] - b[j] * xp[j] for j in range(len(b))], b)
+        self._pieces = [pieces[id(p)] for p in profiles]
+        # (Fx, Fy, Fz, Mz) per unit thrust: the columns the 4-DOF dynamics use
+        self._cols = [tuple(float(self.matrix[r, i]) for r in (0, 1, 2, 5)) for i in range(n)]
+        taus = sorted({p.time_constant for p in profiles})
+        self._group = [taus.index(p.time_constant) for p in profiles]
+        self._members = [[i for i in range(n) if self._group[i] == g] for g in range(len(taus))]
+        self._hint = [0] * n                 # index of the straight piece each speed was on
+        self._on = [0.0] * n                 # thrust = on + slope * F while on that piece
+        self._slope = [0.0] * n
+        self._fe = [0.0] * n                 # re-anchor the thruster once its group's F <= this
+        self._stale = [True] * n             # retargeted since its last re-anchoring
+        self._updates = 0                    # re-anchorings since the sums were last taken afresh
+        self._taus = taus
+        self._single = len(taus) == 1
+        self._f = [1.0] * len(taus)          # decay factor F of each group
+        self._fevent = [0.0] * len(taus)     # re-anchor the group once F <= this
+        self._w0 = (0.0, 0.0, 0.0, 0.0)      # (Fx, Fy, Fz, Mz) = w0 + sum_g w1[g] F[g]
+        self._w1 = [(0.0, 0.0, 0.0, 0.0)] * len(taus)
+        self._dirty = True
+        self._rebuild()
         self.max_thrust = np.array([float(p.thrust(min(1.0, self.supply_voltage / p.nominal_voltage)))
                                     for p in profiles])
         self.min_thrust = np.array([float(p.thrust(-min(1.0, self.supply_voltage / p.nominal_voltage)))
@@ -298,24 +350,28 @@ class ThrusterSet:
     # -- commands and telemetry (device side) ---------------------------------
     def command(self, index: int, kind: str, value: float, now: float) -> None:
         """Command thruster ``index`` with ``value`` of ``kind`` at time ``now`` [s]."""
-        p = self.thrusters[index].profile
-        self._target[index] = target_speed(p, kind, float(value), self.supply_voltage)
+        target = target_speed(self._profiles[index], kind, float(value), self.supply_voltage)
+        if target != self._target[index]:
+            self._retarget(index, target)
         self._cmd_time[index] = now
         self._timed_out[index] = False
-        self._expiry = min(self._expiry, now + self._timeout[index])
+        expiry = now + self._timeout[index]
+        if expiry < self._expiry:
+            self._expiry = expiry
 
     def command_all(self, kind: str, values: Iterable[float], now: float) -> None:
         """Command every thruster at once (e.g. a DroneCAN RawCommand array); (n,) values."""
         vals = list(values)
         if len(vals) != len(self):
             raise ValueError(f"expected {len(self)} commands, got {len(vals)}")
+        command = self.command
         for i, v in enumerate(vals):
-            self.command(i, kind, v, now)
+            command(i, kind, v, now)
 
     def telemetry(self, index: int) -> ThrusterTelemetry:
         """ESC telemetry of thruster ``index`` from its current rotor state."""
         p = self.thrusters[index].profile
-        s = float(self._speed[index])
+        s = self._target[index] + self._dev[index] * self._f[self._group[index]]
         rpm = s * p.max_rpm
         i_motor = p.max_current * s * abs(s)
         duty = max(-1.0, min(1.0, s * p.nominal_voltage / self.supply_voltage))
@@ -327,41 +383,172 @@ class ThrusterSet:
             timed_out=bool(self._timed_out[index]))
 
     # -- physics side ----------------------------------------------------------
+    def _speeds(self) -> list[float]:
+        """(n,) [1] the rotor speed fractions now."""
+        if self._single:
+            f = self._f[0]
+            return [t + d * f for t, d in zip(self._target, self._dev)]
+        fs = self._f
+        return [t + d * fs[g] for t, d, g in zip(self._target, self._dev, self._group)]
+
     @property
     def speeds(self) -> F64:
         """(n,) [1] rotor speed fractions (a copy)."""
-        return np.array(self._speed)
+        return np.array(self._speeds())
 
     def thrusts(self) -> F64:
         """(n,) [N] thrust of each thruster at the current rotor speeds."""
         if self._shared is not None:
-            return self._shared.thrust(self._speed)
-        return np.array([float(p.thrust(s)) for p, s in zip(self._profiles, self._speed)])
+            return self._shared.thrust(self._speeds())
+        return np.array([float(p.thrust(s)) for p, s in zip(self._profiles, self._speeds())])
 
     def wrench(self) -> F64:
         """(6,) body wrench (Fx, Fy, Fz [N], Mx, My, Mz [N m]) at the current speeds."""
         if self._shared is not None:  # the common case, without the wrappers
             p = self._shared
-            return self.matrix @ np.interp(self._speed, p.curve_speed, p.curve_thrust)
+            return self.matrix @ np.interp(self._speeds(), p.curve_speed, p.curve_thrust)
         return self.matrix @ self.thrusts()
+
+    def tick(self, dt: float, now: float) -> tuple[float, float, float, float]:
+        """One physics tick: the wrench's (Fx, Fy, Fz [N], Mz [N m]) at the current
+        speeds (what :meth:`wrench` gives, to rounding), then :meth:`advance`."""
+        w0 = self._w0
+        if not self._single:
+            fx, fy, fz, mz = w0
+            for w1, f in zip(self._w1, self._f):
+                fx += w1[0] * f
+                fy += w1[1] * f
+                fz += w1[2] * f
+                mz += w1[3] * f
+            self.advance(dt, now)
+            return fx, fy, fz, mz
+        # one group: advance() written out
+        fs = self._f
+        f = fs[0]
+        w1 = self._w1[0]
+        out = (w0[0] + w1[0] * f, w0[1] + w1[1] * f, w0[2] + w1[2] * f, w0[3] + w1[3] * f)
+        self._now = now
+        if now > self._expiry:
+            self._watchdog(now)
+        f = fs[0] = fs[0] * _exp(-dt / self._taus[0])  # dt varies by rounding on a clock grid
+        if f <= self._fevent[0] or self._dirty:
+            self._rebuild()
+        td = self._thermal_dt + dt
+        if td >= _THERMAL_STEP:
+            self._advance_thermal(td)
+            td = 0.0
+        self._thermal_dt = td
+        return out
 
     def advance(self, dt: float, now: float) -> None:
         """Advance the rotor speeds by ``dt`` [s] to time ``now`` [s] (watchdog checked at ``now``)."""
         self._now = now
         if now > self._expiry:
             self._watchdog(now)
-        if self._alpha[0] != dt:
-            self._alpha = (dt, [-math.expm1(-dt / tau) for tau in self._tau])
-        # exact first-order lag; a zero target below the dead band stops the rotor
-        speeds = []
-        for s0, t0, a, d0 in zip(self._speed, self._target, self._alpha[1], self._dead):
-            s1 = s0 + (t0 - s0) * a
-            speeds.append(0.0 if t0 == 0.0 and -d0 < s1 < d0 else s1)
-        self._speed = speeds
-        self._thermal_dt += dt
-        if self._thermal_dt >= _THERMAL_STEP:
-            self._advance_thermal(self._thermal_dt)
-            self._thermal_dt = 0.0
+        fs, fe = self._f, self._fevent
+        event = False
+        for g, tau in enumerate(self._taus):
+            f = fs[g] = fs[g] * _exp(-dt / tau)
+            event = event or f <= fe[g]
+        if event or self._dirty:
+            self._rebuild()
+        td = self._thermal_dt + dt
+        if td >= _THERMAL_STEP:
+            self._advance_thermal(td)
+            td = 0.0
+        self._thermal_dt = td
+
+    def _retarget(self, index: int, target: float) -> None:
+        """Set a new target speed, keeping the rotor's present speed."""
+        f = self._f[self._group[index]]
+        s = self._target[index] + self._dev[index] * f
+        self._target[index] = target
+        self._dev[index] = (s - target) / f
+        self._stale[index] = True
+        self._dirty = True
+
+    def _rebuild(self) -> None:
+        """Re-anchor the thrusters that are due: those retargeted since the last call
+        and those whose F reached their event threshold. For each: stop a zero-target
+        rotor inside the dead band, find its thrust's straight piece, update W0 and W1
+        by the change of its terms, and find the F of its next event. Every
+        ``_RENORMALISE`` updates, or when an F nears underflow, every group is
+        re-anchored at F = 1 and the sums are taken afresh (no rounding drift)."""
+        target, dev, dead, hint, stale = self._target, self._dev, self._dead, self._hint, self._stale
+        on, slope, fe = self._on, self._slope, self._fe
+        pieces, cols = self._pieces, self._cols
+        fs, fevent = self._f, self._fevent
+        if self._updates >= _RENORMALISE or min(fs) <= _F_FLOOR * _EVENT_MARGIN:
+            for members, f in zip(self._members, fs):
+                for i in members:
+                    dev[i] *= f
+                    stale[i] = True
+                    on[i] = slope[i] = 0.0
+            fs[:] = [1.0] * len(fs)
+            self._w0 = (0.0, 0.0, 0.0, 0.0)
+            self._w1 = [(0.0, 0.0, 0.0, 0.0)] * len(fs)
+            self._updates = 0
+            self._dirty = True
+        w0x, w0y, w0z, w0n = self._w0
+        for g, members in enumerate(self._members):
+            f = fs[g]
+            if f > fevent[g] and not self._dirty:
+                continue
+            w1x, w1y, w1z, w1n = self._w1[g]
+            due = _F_FLOOR
+            for i in members:
+                if not stale[i] and fe[i] < f:
+                    if fe[i] > due:
+                        due = fe[i]
+                    continue
+                stale[i] = False
+                self._updates += 1
+                t = target[i]
+                s = t + dev[i] * f
+                if t == 0.0 and -dead[i] < s < dead[i]:
+                    s = 0.0  # a zero target below the dead band stops the rotor
+                    dev[i] = 0.0
+                d = dev[i]
+                xp, a, b = pieces[i]
+                j = hint[i]
+                if not xp[j] <= s <= xp[j + 1]:
+                    j = hint[i] = min(max(bisect.bisect_right(xp, s) - 1, 0), len(b) - 1)
+                # thrust = on + slope * F on this piece; W0, W1 change by the terms' change
+                o, sl = a[j] + b[j] * t, b[j] * d
+                do, dsl = o - on[i], sl - slope[i]
+                on[i], slope[i] = o, sl
+                cx, cy, cz, cn = cols[i]
+                w0x += cx * do
+                w0y += cy * do
+                w0z += cz * do
+                w0n += cn * do
+                w1x += cx * dsl
+                w1y += cy * dsl
+                w1z += cz * dsl
+                w1n += cn * dsl
+                # the F at which the speed leaves its piece (or stops in the dead band)
+                e = 0.0
+                if d > 0.0:
+                    if t < xp[j]:
+                        e = (xp[j] - t) / d * _EVENT_MARGIN
+                    if t == 0.0:
+                        e = max(e, dead[i] / d * _EVENT_MARGIN)
+                elif d < 0.0:
+                    if t > xp[j + 1]:
+                        e = (xp[j + 1] - t) / d * _EVENT_MARGIN
+                    if t == 0.0:
+                        e = max(e, -dead[i] / d * _EVENT_MARGIN)
+                fe[i] = e
+                if e > due:
+                    due = e
+            self._w1[g] = (w1x, w1y, w1z, w1n)
+            fevent[g] = due
+        self._w0 = (w0x, w0y, w0z, w0n)
+        if not any(slope):  # every rotor at its target: W1 is exactly zero, not a residue
+            self._w1 = [(0.0, 0.0, 0.0, 0.0)] * len(fs)
+            if not any(on):  # and every thrust zero (all stopped): so is W0
+                self._w0 = (0.0, 0.0, 0.0, 0.0)
+        self._dirty = False
 
     def _watchdog(self, now: float) -> None:
         """Zero the target of every thruster whose command is older than its timeout."""
@@ -369,16 +556,23 @@ class ThrusterSet:
         for i, (tc, to) in enumerate(zip(self._cmd_time, self._timeout)):
             if now - tc > to:
                 self._timed_out[i] = True
-                self._target[i] = 0.0
+                if self._target[i] != 0.0:
+                    self._retarget(i, 0.0)
             else:
                 expiry = min(expiry, tc + to)
         self._expiry = expiry
 
     def _advance_thermal(self, dt: float) -> None:
-        for k, (p, s) in enumerate(zip(self._profiles, self._speed)):
-            loss = (p.max_current * s * s) ** 2 * p.winding_resistance  # [W] copper loss
-            steady = self.water_temperature + p.thermal_resistance * loss
-            self._temp[k] += (steady - self._temp[k]) * -math.expm1(-dt / p.thermal_time_constant)
+        """Winding temperatures over ``dt`` [s] towards the steady temperature of the
+        present copper loss ``(max_current s^2)^2 winding_resistance``, exactly (first order)."""
+        water = self.water_temperature
+        if self._single and len(self._thermal_taus) == 1:  # the common case, in one pass
+            a, f = -math.expm1(-dt / self._thermal_taus[0]), self._f[0]
+            self._temp = [tk + (water + c * (t + d * f) ** 4 - tk) * a
+                          for tk, c, t, d in zip(self._temp, self._heat, self._target, self._dev)]
+            return
+        for k, (s, c, tau) in enumerate(zip(self._speeds(), self._heat, self._thermal_tau)):
+            self._temp[k] += (water + c * s ** 4 - self._temp[k]) * -math.expm1(-dt / tau)
 
     # -- allocation (controller side) ------------------------------------------
     def allocate(self, wrench: Sequence[float] | F64, dofs: Sequence[int] = (0, 1, 2, 3, 4, 5)) -> Allocation:

@@ -30,11 +30,17 @@ far inside RK4's real-axis stability limit (2.79), with a local error of order
 yaw) stays stable at 50 ms too (lambda dt about 1). Semi-implicit Euler would
 be unconditionally stable but only first order: at 50 ms its error is about
 ``lambda dt / 2`` of a transient (several percent), which would break the
-agreement of 1 ms and 50 ms runs. RK4 is evaluated in plain Python floats
-(eight scalars: faster than numpy calls on arrays this small). In still water
-the velocity equations do not depend on the pose, so each DOF's RK4 stages
-are computed alone and the position and heading are integrated from those
-same stages with the RK4 weights: the same scheme as RK4 on the full state.
+agreement of 1 ms and 50 ms runs. RK4 is written out in plain Python floats
+(eight scalars: numpy calls on arrays this small cost more than the
+arithmetic). In still water the velocity equations do not depend on the
+pose, so each DOF's RK4 stages are computed alone and the position and
+heading are integrated from those same stages with the RK4 weights: the same
+scheme as RK4 on the full state. A DOF at rest under no force stays at rest
+(RK4 gives exactly that; its stages are not computed), and with no turn the
+four stages share one heading. With a current, yaw (which does not feel it)
+is integrated first and fixes the stages' headings. The step returns a
+:class:`VehicleState` built from its 15 numbers (:meth:`VehicleState.from_flat`):
+the arrays are made only if read, and the next step reads the numbers.
 
 Profiles (``devices/vehicles/*.toml``) are read by :func:`load_vehicle_profile`;
 another vehicle is another file. Water currents are :class:`Current`.
@@ -60,6 +66,10 @@ DOF_NAMES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
 MODELLED_DOFS = ("surge", "sway", "heave", "yaw")
 _ROTATIONAL = ("roll", "pitch", "yaw")
 _TWO_PI = 2.0 * math.pi
+_PI = math.pi
+_cos, _sin = math.cos, math.sin
+_new = object.__new__
+_Stages = tuple[float, float, float, float]  # a velocity at the step's end, then at RK4 stages 2, 3, 4
 
 
 def _bracket(grid: tuple[float, ...], x: float) -> tuple[int, int, float]:
@@ -85,6 +95,8 @@ class Current:
     velocities: tuple[tuple[tuple[float, float, float], ...], ...]
     times: tuple[float, ...] = (0.0,)
     depths: tuple[float, ...] = (0.0,)
+    _zero: bool = field(init=False, repr=False, compare=False)  # still water everywhere
+    _const: tuple[float, float, float] | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         arr = np.asarray(self.velocities, dtype=float)
@@ -93,6 +105,11 @@ class Current:
         for g in (self.times, self.depths):
             if any(b <= a for a, b in zip(g, g[1:])):
                 raise ValueError("times and depths must be strictly increasing")
+        # cached for the physics step: still water, and the velocity of a uniform steady current
+        zero = not any(c for plane in self.velocities for row in plane for c in row)
+        const = self.velocities[0][0] if len(self.times) == 1 and len(self.depths) == 1 else None
+        object.__setattr__(self, "_zero", zero)
+        object.__setattr__(self, "_const", None if const is None else tuple(float(c) for c in const))
 
     @staticmethod
     def constant(velocity: Sequence[float]) -> "Current":
@@ -115,7 +132,7 @@ class Current:
     @property
     def is_zero(self) -> bool:
         """True when the water is still everywhere."""
-        return not any(c for plane in self.velocities for row in plane for c in row)
+        return self._zero
 
     def velocity(self, depth: float, time: float) -> tuple[float, float, float]:
         """NED current (north, east, down) [m/s] at ``depth`` [m] and ``time`` [s]."""
@@ -238,21 +255,16 @@ def _load_thrusters(doc: Doc, path: Path) -> tuple[tuple[Thruster, ...], float |
     return tuple(out), voltage
 
 
-def _rk4_dof(x0: float, f: float, k: float, q: float, dt: float) -> tuple[float, float, float, float]:
-    """RK4 step of ``dx/dt = f - k x - q x |x|`` (all per unit mass).
-
-    Returns (x(dt), x at stage 2, x at stage 3, x at stage 4): the stage values
-    are what the kinematics need to be integrated with the same RK4 weights.
-    """
-    h = 0.5 * dt
-    a = f - (k + q * abs(x0)) * x0
-    xb = x0 + h * a
-    b = f - (k + q * abs(xb)) * xb
-    xc = x0 + h * b
-    c = f - (k + q * abs(xc)) * xc
-    xd = x0 + dt * c
-    d = f - (k + q * abs(xd)) * xd
-    return x0 + dt / 6.0 * (a + 2.0 * b + 2.0 * c + d), xb, xc, xd
+def _kinematics(x0: float, y0: float, k6: float, cos: _Stages, sin: _Stages, u: _Stages, v: _Stages
+                ) -> tuple[float, float]:
+    """North, east [m] after a step: ``d(x, y)/dt = Rz(psi) (u, v)`` with the RK4 weights
+    (``k6 = dt / 6``), given cos, sin of the heading and u, v [m/s] at the four stages."""
+    ca, cb, cc, cd = cos
+    sa, sb, sc, sd = sin
+    u0, ub, uc, ud = u
+    v0, vb, vc, vd = v
+    return (x0 + k6 * (ca * u0 - sa * v0 + 2.0 * (cb * ub - sb * vb + cc * uc - sc * vc) + cd * ud - sd * vd),
+            y0 + k6 * (sa * u0 + ca * v0 + 2.0 * (sb * ub + cb * vb + sc * uc + cc * vc) + sd * ud + cd * vd))
 
 
 class Vehicle:
@@ -271,7 +283,10 @@ class Vehicle:
                 return 0.0, 0.0, 0.0, 0.0
             return 1.0 / p.mass, p.linear_damping, p.quadratic_damping, p.constant_force
 
+        # per DOF (surge, sway, heave, yaw): 1 / mass, damping, quadratic damping, constant force
         self._c = tuple(coeffs(d) for d in MODELLED_DOFS)
+        # the same with the damping per unit mass (still water)
+        self._cm = tuple((i, k * i, q * i, c) for i, k, q, c in self._c)
         self._held = any(d not in profile.dofs for d in MODELLED_DOFS)
 
     @staticmethod
@@ -297,72 +312,170 @@ class Vehicle:
         if not dt > 0:
             raise ValueError(f"dt must be > 0, got {dt}")
         wr = wrench.tolist() if isinstance(wrench, np.ndarray) else wrench
-        (iu, ku, qu, cu), (iv, kv, qv, cv), (iw, kw, qw, cw), (ir, kr, qr, cr) = self._c
-        forces = ((wr[0] + cu) * iu, (wr[1] + cv) * iv, (wr[2] + cw) * iw, (wr[5] + cr) * ir)
-        t0 = state.time
-        x0, y0, z0 = state.position.tolist()
-        roll, pitch, psi0 = state.attitude.tolist()
-        u0, v0, w0 = state.velocity.tolist()
-        r0 = float(state.angular_velocity[2])
-        if self._held:  # a held DOF keeps zero velocity
-            u0, v0, w0, r0 = (a if i else 0.0 for a, i in zip((u0, v0, w0, r0), (iu, iv, iw, ir)))
-        if current is None or current.is_zero:
-            # still water: the four velocity ODEs are independent of the pose
-            u = _rk4_dof(u0, forces[0], ku * iu, qu * iu, dt)
-            v = _rk4_dof(v0, forces[1], kv * iv, qv * iv, dt)
-            w = _rk4_dof(w0, forces[2], kw * iw, qw * iw, dt)
-            r = _rk4_dof(r0, forces[3], kr * ir, qr * ir, dt)
-        else:
-            u, v, w, r = self._rk4_current(t0, z0, psi0, (u0, v0, w0, r0), forces, current, dt)
-        # kinematics with the same RK4 weights, at the stages' headings and velocities
-        h, k6 = dt * 0.5, dt / 6.0
-        psi_b, psi_c, psi_d = psi0 + h * r0, psi0 + h * r[1], psi0 + dt * r[2]
-        ca, cb, cc, cd = math.cos(psi0), math.cos(psi_b), math.cos(psi_c), math.cos(psi_d)
-        sa, sb, sc, sd = math.sin(psi0), math.sin(psi_b), math.sin(psi_c), math.sin(psi_d)
-        x = x0 + k6 * (ca * u0 - sa * v0 + 2.0 * (cb * u[1] - sb * v[1] + cc * u[2] - sc * v[2])
-                       + cd * u[3] - sd * v[3])
-        y = y0 + k6 * (sa * u0 + ca * v0 + 2.0 * (sb * u[1] + cb * v[1] + sc * u[2] + cc * v[2])
-                       + sd * u[3] + cd * v[3])
-        z = z0 + k6 * (w0 + 2.0 * (w[1] + w[2]) + w[3])
-        psi = psi0 + k6 * (r0 + 2.0 * (r[1] + r[2]) + r[3])
-        psi = (psi + math.pi) % _TWO_PI - math.pi
-        inv = 1.0 / dt
-        buf = np.array((x, y, z, roll, pitch, psi, u[0], v[0], w[0], 0.0, 0.0, r[0],
-                        (u[0] - u0) * inv, (v[0] - v0) * inv, (w[0] - w0) * inv))
-        return VehicleState(t0 + dt, buf[0:3], buf[3:6], buf[6:9], buf[9:12], buf[12:15])
-
-    def _rk4_current(self, t0: float, z0: float, psi0: float, nu0: tuple[float, float, float, float],
-                     forces: tuple[float, float, float, float], current: Current, dt: float
-                     ) -> tuple[tuple[float, float, float, float], ...]:
-        """RK4 of (z, psi, u, v, w, r) with damping on the velocity relative to ``current``;
-        returns per DOF (end value, stage-2, stage-3, stage-4 velocity) like :func:`_rk4_dof`."""
-        (iu, ku, qu, _), (iv, kv, qv, _), (iw, kw, qw, _), (ir, kr, qr, _) = self._c
-        fu, fv, fw, fr = forces
-
-        def deriv(t: float, z: float, psi: float, nu: tuple[float, ...]) -> tuple[float, ...]:
-            u, v, w, r = nu
-            c, s = math.cos(psi), math.sin(psi)
-            cn, ce, cd = current.velocity(z, t)
-            ur, vr, wr = u - (c * cn + s * ce), v - (c * ce - s * cn), w - cd
-            return (fu - (ku * ur + qu * ur * abs(ur)) * iu, fv - (kv * vr + qv * vr * abs(vr)) * iv,
-                    fw - (kw * wr + qw * wr * abs(wr)) * iw, fr - (kr * r + qr * r * abs(r)) * ir)
-
-        h = dt * 0.5
-        k1 = deriv(t0, z0, psi0, nu0)
-        nu2 = tuple(a + h * b for a, b in zip(nu0, k1))
-        k2 = deriv(t0 + h, z0 + h * nu0[2], psi0 + h * nu0[3], nu2)
-        nu3 = tuple(a + h * b for a, b in zip(nu0, k2))
-        k3 = deriv(t0 + h, z0 + h * nu2[2], psi0 + h * nu2[3], nu3)
-        nu4 = tuple(a + dt * b for a, b in zip(nu0, k3))
-        k4 = deriv(t0 + dt, z0 + dt * nu3[2], psi0 + dt * nu3[3], nu4)
-        out = [(nu0[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]), nu2[i], nu3[i], nu4[i])
-               for i in range(4)]
-        return out[0], out[1], out[2], out[3]
+        return self._step(state, dt, wr[0], wr[1], wr[2], wr[5], current)
 
     def step_with_thrusters(self, state: VehicleState, dt: float, thrusters: ThrusterSet,
                             current: Current | None = None) -> VehicleState:
         """One physics tick: the thrusters' wrench at the step's start, held over
         ``dt`` [s]; the rotors are then advanced to the step's end (mutates ``thrusters``)."""
-        wrench = thrusters.wrench()
-        thrusters.advance(dt, state.time + dt)
-        return self.step(state, dt, wrench, current)
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0, got {dt}")
+        fx, fy, fz, mz = thrusters.tick(dt, state.time + dt)
+        return self._step(state, dt, fx, fy, fz, mz, current)
+
+    def _step(self, state: VehicleState, dt: float, fx: float, fy: float, fz: float, mz: float,
+              current: Current | None) -> VehicleState:
+        """:meth:`step` with the wrench's Fx, Fy, Fz [N] and Mz [N m]; RK4 written out
+        per DOF in Python floats (the stage values feed the kinematics)."""
+        t0 = state.time
+        sd = state.__dict__
+        flat = sd.get("_flat")
+        if flat is None or "position" in sd:  # arrays (given, or built and maybe read)
+            x0, y0, z0 = state.position.tolist()
+            roll, pitch, psi0 = state.attitude.tolist()
+            u0, v0, w0 = state.velocity.tolist()
+            r0 = float(state.angular_velocity[2])
+        else:
+            x0, y0, z0, roll, pitch, psi0, u0, v0, w0, _, _, r0, _, _, _ = flat
+        (iu, ku, qu, cu), (iv, kv, qv, cv), (iw, kw, qw, cw), (ir, kr, qr, cr) = self._cm
+        if self._held:  # a held DOF keeps zero velocity
+            u0, v0, w0, r0 = (a if i else 0.0 for a, i in zip((u0, v0, w0, r0), (iu, iv, iw, ir)))
+        h = 0.5 * dt
+        k6 = dt / 6.0
+        if current is None or current._zero:
+            # still water: each velocity ODE is on its own, dx/dt = f - (k + q |x|) x per unit
+            # mass. A DOF at rest under no force stays at rest (what RK4 gives, skipped).
+            f = (fx + cu) * iu
+            if f == 0.0 and u0 == 0.0:
+                u1 = ub = uc = ud = u0
+            else:
+                a = f - (ku + qu * abs(u0)) * u0
+                ub = u0 + h * a
+                b = f - (ku + qu * abs(ub)) * ub
+                uc = u0 + h * b
+                c = f - (ku + qu * abs(uc)) * uc
+                ud = u0 + dt * c
+                u1 = u0 + k6 * (a + 2.0 * b + 2.0 * c + (f - (ku + qu * abs(ud)) * ud))
+            f = (fy + cv) * iv
+            if f == 0.0 and v0 == 0.0:
+                v1 = vb = vc = vd = v0
+            else:
+                a = f - (kv + qv * abs(v0)) * v0
+                vb = v0 + h * a
+                b = f - (kv + qv * abs(vb)) * vb
+                vc = v0 + h * b
+                c = f - (kv + qv * abs(vc)) * vc
+                vd = v0 + dt * c
+                v1 = v0 + k6 * (a + 2.0 * b + 2.0 * c + (f - (kv + qv * abs(vd)) * vd))
+            f = (fz + cw) * iw
+            if f == 0.0 and w0 == 0.0:
+                w1 = wb = wc = wd = w0
+            else:
+                a = f - (kw + qw * abs(w0)) * w0
+                wb = w0 + h * a
+                b = f - (kw + qw * abs(wb)) * wb
+                wc = w0 + h * b
+                c = f - (kw + qw * abs(wc)) * wc
+                wd = w0 + dt * c
+                w1 = w0 + k6 * (a + 2.0 * b + 2.0 * c + (f - (kw + qw * abs(wd)) * wd))
+            f = (mz + cr) * ir
+            if f == 0.0 and r0 == 0.0:  # no turn: one heading for all the stages
+                r1 = rb = rc = rd = r0
+                ca, sa = _cos(psi0), _sin(psi0)
+                su = u0 + 2.0 * (ub + uc) + ud  # the RK4 sums of the body velocities
+                sv = v0 + 2.0 * (vb + vc) + vd
+                x = x0 + k6 * (ca * su - sa * sv)
+                y = y0 + k6 * (sa * su + ca * sv)
+            else:
+                a = f - (kr + qr * abs(r0)) * r0
+                rb = r0 + h * a
+                b = f - (kr + qr * abs(rb)) * rb
+                rc = r0 + h * b
+                c = f - (kr + qr * abs(rc)) * rc
+                rd = r0 + dt * c
+                r1 = r0 + k6 * (a + 2.0 * b + 2.0 * c + (f - (kr + qr * abs(rd)) * rd))
+                # the kinematics at the stages' headings (as _kinematics, written out)
+                psi_b, psi_c, psi_d = psi0 + h * r0, psi0 + h * rb, psi0 + dt * rc
+                ca, cb, cc, cd = _cos(psi0), _cos(psi_b), _cos(psi_c), _cos(psi_d)
+                sa, sb, sc, sd_ = _sin(psi0), _sin(psi_b), _sin(psi_c), _sin(psi_d)
+                x = x0 + k6 * (ca * u0 - sa * v0 + 2.0 * (cb * ub - sb * vb + cc * uc - sc * vc)
+                               + cd * ud - sd_ * vd)
+                y = y0 + k6 * (sa * u0 + ca * v0 + 2.0 * (sb * ub + cb * vb + sc * uc + cc * vc)
+                               + sd_ * ud + cd * vd)
+        else:
+            (u1, ub, uc, ud), (v1, vb, vc, vd), (w1, wb, wc, wd), (r1, rb, rc, rd), cos, sin = \
+                self._rk4_current(t0, z0, psi0, u0, v0, w0, r0, fx, fy, fz, mz, current, dt)
+            x, y = _kinematics(x0, y0, k6, cos, sin, (u0, ub, uc, ud), (v0, vb, vc, vd))
+        z = z0 + k6 * (w0 + 2.0 * (wb + wc) + wd)
+        psi = psi0 + k6 * (r0 + 2.0 * (rb + rc) + rd)
+        psi = (psi + _PI) % _TWO_PI - _PI
+        inv = 1.0 / dt
+        # VehicleState.from_flat without its checks: the arrays are built when first read
+        out = _new(VehicleState)
+        od = out.__dict__
+        od["time"] = t0 + dt
+        od["_flat"] = (x, y, z, roll, pitch, psi, u1, v1, w1, 0.0, 0.0, r1,
+                       (u1 - u0) * inv, (v1 - v0) * inv, (w1 - w0) * inv)
+        return out
+
+    def _rk4_current(self, t0: float, z0: float, psi0: float, u0: float, v0: float, w0: float, r0: float,
+                     fx: float, fy: float, fz: float, mz: float, current: Current, dt: float
+                     ) -> tuple[_Stages, _Stages, _Stages, _Stages, _Stages, _Stages]:
+        """RK4 of (z, psi, u, v, w, r) with damping on the velocity relative to ``current``.
+
+        Returns per DOF (end value, stage-2, stage-3, stage-4 velocity), then the
+        cosines and the sines of the four stages' headings. Yaw does not feel the
+        current, so its stages come first and fix the headings at which the
+        current is rotated into the body frame."""
+        (iu, ku, qu, cu), (iv, kv, qv, cv), (iw, kw, qw, cw), (ir, kr, qr, cr) = self._c
+        fu, fv, fw, fr = (fx + cu) * iu, (fy + cv) * iv, (fz + cw) * iw, (mz + cr) * ir
+        h = dt * 0.5
+        k6 = dt / 6.0
+        ka = fr - (kr * r0 + qr * r0 * abs(r0)) * ir
+        rb = r0 + h * ka
+        kb = fr - (kr * rb + qr * rb * abs(rb)) * ir
+        rc = r0 + h * kb
+        kc = fr - (kr * rc + qr * rc * abs(rc)) * ir
+        rd = r0 + dt * kc
+        r1 = r0 + k6 * (ka + 2.0 * kb + 2.0 * kc + (fr - (kr * rd + qr * rd * abs(rd)) * ir))
+        psi_b, psi_c, psi_d = psi0 + h * r0, psi0 + h * rb, psi0 + dt * rc
+        cos = (_cos(psi0), _cos(psi_b), _cos(psi_c), _cos(psi_d))
+        sin = (_sin(psi0), _sin(psi_b), _sin(psi_c), _sin(psi_d))
+        ca, cb, cc, cd = cos
+        sa, sb, sc, sd = sin
+        const = current._const
+        vel = current.velocity
+        # stage 1 (t0, z0, psi0); a stage's heave gives the next stage's depth
+        cn, ce, cz = const if const is not None else vel(z0, t0)
+        ur, vr, wr = u0 - (ca * cn + sa * ce), v0 - (ca * ce - sa * cn), w0 - cz
+        au = fu - (ku * ur + qu * ur * abs(ur)) * iu
+        av = fv - (kv * vr + qv * vr * abs(vr)) * iv
+        aw = fw - (kw * wr + qw * wr * abs(wr)) * iw
+        ub, vb, wb = u0 + h * au, v0 + h * av, w0 + h * aw
+        # stage 2 (t0 + h, z0 + h w0, psi_b)
+        if const is None:
+            cn, ce, cz = vel(z0 + h * w0, t0 + h)
+        ur, vr, wr = ub - (cb * cn + sb * ce), vb - (cb * ce - sb * cn), wb - cz
+        bu = fu - (ku * ur + qu * ur * abs(ur)) * iu
+        bv = fv - (kv * vr + qv * vr * abs(vr)) * iv
+        bw = fw - (kw * wr + qw * wr * abs(wr)) * iw
+        uc, vc, wc = u0 + h * bu, v0 + h * bv, w0 + h * bw
+        # stage 3 (t0 + h, z0 + h wb, psi_c)
+        if const is None:
+            cn, ce, cz = vel(z0 + h * wb, t0 + h)
+        ur, vr, wr = uc - (cc * cn + sc * ce), vc - (cc * ce - sc * cn), wc - cz
+        cu_ = fu - (ku * ur + qu * ur * abs(ur)) * iu
+        cv_ = fv - (kv * vr + qv * vr * abs(vr)) * iv
+        cw_ = fw - (kw * wr + qw * wr * abs(wr)) * iw
+        ud, vd, wd = u0 + dt * cu_, v0 + dt * cv_, w0 + dt * cw_
+        # stage 4 (t0 + dt, z0 + dt wc, psi_d)
+        if const is None:
+            cn, ce, cz = vel(z0 + dt * wc, t0 + dt)
+        ur, vr, wr = ud - (cd * cn + sd * ce), vd - (cd * ce - sd * cn), wd - cz
+        du = fu - (ku * ur + qu * ur * abs(ur)) * iu
+        dv = fv - (kv * vr + qv * vr * abs(vr)) * iv
+        dw = fw - (kw * wr + qw * wr * abs(wr)) * iw
+        return ((u0 + k6 * (au + 2.0 * bu + 2.0 * cu_ + du), ub, uc, ud),
+                (v0 + k6 * (av + 2.0 * bv + 2.0 * cv_ + dv), vb, vc, vd),
+                (w0 + k6 * (aw + 2.0 * bw + 2.0 * cw_ + dw), wb, wc, wd),
+                (r1, rb, rc, rd), cos, sin)

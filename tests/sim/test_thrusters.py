@@ -206,3 +206,132 @@ def test_allocation_over_a_subset_of_dofs_leaves_the_others_free(cyclops_set: Th
     assert not a.saturated
     np.testing.assert_allclose(a.wrench[[0, 1, 5]], [50.0, -10.0, 5.0], atol=1e-9)
     np.testing.assert_allclose(a.thrusts[4:], 0.0, atol=1e-12)  # minimum norm: verticals idle
+
+
+class SteppedRotors:
+    """The thruster model stepped rotor by rotor, every tick: the exact first-order lag,
+    the dead band stop, the watchdog, the winding temperature and np.interp thrust."""
+
+    def __init__(self, ts: ThrusterSet):
+        self.ts = ts
+        self.n = len(ts)
+        self.speed = [0.0] * self.n
+        self.target = [0.0] * self.n
+        self.cmd_time = [-math.inf] * self.n
+        self.timed_out = [True] * self.n
+        self.temp = [ts.water_temperature] * self.n
+        self.thermal_dt = 0.0
+
+    def command(self, i: int, kind: str, value: float, now: float) -> None:
+        self.target[i] = target_speed(self.ts.thrusters[i].profile, kind, value, self.ts.supply_voltage)
+        self.cmd_time[i] = now
+        self.timed_out[i] = False
+
+    def wrench(self) -> np.ndarray:
+        thrust = [np.interp(s, t.profile.curve_speed, t.profile.curve_thrust)
+                  for t, s in zip(self.ts.thrusters, self.speed)]
+        return self.ts.matrix @ np.array(thrust)
+
+    def advance(self, dt: float, now: float) -> None:
+        for i, t in enumerate(self.ts.thrusters):
+            p = t.profile
+            if now - self.cmd_time[i] > p.watchdog_timeout:
+                self.timed_out[i] = True
+                self.target[i] = 0.0
+            s = self.speed[i] + (self.target[i] - self.speed[i]) * -math.expm1(-dt / p.time_constant)
+            self.speed[i] = 0.0 if self.target[i] == 0.0 and abs(s) < p.dead_band else s
+        self.thermal_dt += dt
+        if self.thermal_dt >= 0.05:
+            for i, t in enumerate(self.ts.thrusters):
+                p = t.profile
+                loss = (p.max_current * self.speed[i] ** 2) ** 2 * p.winding_resistance
+                steady = self.ts.water_temperature + p.thermal_resistance * loss
+                self.temp[i] += (steady - self.temp[i]) * -math.expm1(-self.thermal_dt / p.thermal_time_constant)
+            self.thermal_dt = 0.0
+
+
+def _random_run(ts: ThrusterSet, seed: int, ticks: int, check_every: int = 1) -> None:
+    """Drive ``ts`` and a :class:`SteppedRotors` with the same random commands and
+    clock (rounding-jittered dt, stalls, bursts, silences for the watchdog); compare."""
+    ref = SteppedRotors(ts)
+    rng = np.random.default_rng(seed)
+    scale = {"normalized": 1.0, "duty": 1.0, "rpm": 3600.0, "current": 24.0}
+    values = [0.0, 0.03, -0.05, 0.0626, 0.5, 0.55, -0.6, 1.0, -1.0, 1.7]
+    t, silent_until = 0.0, -1.0
+    for k in range(ticks):
+        if t > silent_until and rng.random() < 0.06:
+            if rng.random() < 0.1:
+                silent_until = t + rng.uniform(0.3, 1.5)  # commands stop: the watchdog may trip
+            kind = str(rng.choice(list(scale)))
+            for i in range(len(ts)):
+                if rng.random() < 0.6:
+                    v = float(rng.choice(values)) if rng.random() < 0.5 else float(rng.uniform(-1.1, 1.1))
+                    ts.command(i, kind, v * scale[kind], t)
+                    ref.command(i, kind, v * scale[kind], t)
+        dt = float(rng.choice([0.005, 0.005, 0.005, 0.001, 0.01, 0.0173])) * (1.0 + 1e-15 * rng.normal())
+        t += dt
+        want = ref.wrench()
+        got = ts.tick(dt, t)
+        np.testing.assert_allclose(got, want[[0, 1, 2, 5]], rtol=0, atol=1e-11)
+        ref.advance(dt, t)
+        speeds = ts.speeds
+        np.testing.assert_allclose(speeds, ref.speed, rtol=0, atol=1e-13)
+        assert [s == 0.0 for s in speeds] == [s == 0.0 for s in ref.speed], k  # stopped on the same tick
+        if k % check_every == 0:
+            np.testing.assert_allclose(ts.wrench(), ref.wrench(), rtol=0, atol=1e-11)
+            for i in range(len(ts)):
+                tel = ts.telemetry(i)
+                assert tel.timed_out == ref.timed_out[i]
+                assert tel.temperature == pytest.approx(ref.temp[i], rel=1e-13)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_closed_form_rotor_state_equals_stepping_every_rotor(cyclops_set: ThrusterSet, seed: int) -> None:
+    """The set keeps its rotors in closed form between events (pieces of the thrust curve,
+    dead band, commands, watchdog): the same speeds, stops and wrench as stepping each rotor."""
+    _random_run(cyclops_set, seed, 2500)
+
+
+def test_closed_form_with_two_time_constants_and_a_long_run() -> None:
+    """Thrusters of two time constants (two decay factors), over a long run that
+    renormalises the decay factors and refreshes the sums many times."""
+    from dataclasses import replace
+
+    profile = load_vehicle_profile(CYCLOPS)
+    slow = replace(profile.thrusters[0].profile, time_constant=0.11, thermal_time_constant=30.0)
+    units = [replace(u, profile=slow) if i % 3 == 0 else u for i, u in enumerate(profile.thrusters)]
+    _random_run(ThrusterSet(units, 16.0), 7, 12000, check_every=50)
+
+
+def test_tick_is_the_wrench_then_advance(cyclops_set: ThrusterSet) -> None:
+    ts, twin = cyclops_set, load_vehicle_profile(CYCLOPS).thruster_set()
+    for t in (0.0, 0.3):
+        for s in (ts, twin):
+            s.command_all("normalized", [0.7, -0.4, 0.2, 0.9, -0.1, 0.3, 0.0, -0.8], t)
+        for k in range(60):
+            now = t + (k + 1) * 0.005
+            w = twin.wrench()
+            twin.advance(0.005, now)
+            np.testing.assert_allclose(ts.tick(0.005, now), w[[0, 1, 2, 5]], atol=1e-12)
+            np.testing.assert_allclose(ts.speeds, twin.speeds, atol=1e-15)
+
+
+def test_a_nan_command_is_a_zero_target() -> None:
+    p = load_thruster_profile(T200)
+    for kind in ("normalized", "duty", "rpm", "erpm", "current"):
+        assert target_speed(p, kind, math.nan, 16.0) == 0.0
+    assert target_speed(p, "normalized", math.inf, 16.0) == 1.0  # saturates, as before
+
+
+def test_stopped_rotors_give_an_exactly_zero_tick_wrench(cyclops_set: ThrusterSet) -> None:
+    ts = cyclops_set
+    t = 0.0
+    for k in range(200):  # an uneven history, then silence: the watchdog stops every rotor
+        t += 0.005
+        if k % 20 == 0:
+            ts.command_all("normalized", [0.9, -0.3, 0.5, 0.1, -0.7, 0.2, 0.65, -0.45], t)
+        ts.tick(0.005, t)
+    while not np.all(ts.speeds == 0.0):
+        t += 0.005
+        ts.tick(0.005, t)
+    assert ts.tick(0.005, t + 0.005) == (0.0, 0.0, 0.0, 0.0)

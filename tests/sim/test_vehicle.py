@@ -228,3 +228,68 @@ def test_roll_pitch_are_held_not_modelled(tmp_path: Path) -> None:
     s = Vehicle.from_file(CYCLOPS).step(VehicleState(attitude=np.array([0.01, -0.02, 0.0])), 0.1,
                                         [0, 0, 0, 5.0, 5.0, 0])
     np.testing.assert_array_equal(s.attitude[:2], [0.01, -0.02])  # carried through, moments ignored
+
+
+@pytest.mark.parametrize("dt", [0.001, 0.01, 0.05])
+def test_no_turn_and_idle_dofs_match_reference(cyclops: Vehicle, dt: float) -> None:
+    """Surge and heave only, from rest at a heading: yaw and sway stay exactly at rest
+    (their integration is skipped) and the track follows the heading."""
+    wrench = [90.0, 0.0, 40.0, 0.0, 0.0, 0.0]
+    s = VehicleState(position=np.array([3.0, -1.0, 2.0]), attitude=np.array([0.0, 0.0, 2.2]))
+    ref = reference(cyclops, to_vec(s), lambda t: wrench, 6.0)
+    s = run(cyclops, wrench, 6.0, dt, s)
+    assert s.velocity[1] == 0.0 and s.angular_velocity[2] == 0.0
+    got, want = to_vec(s), ref.y[:, -1]
+    got[3] = want[3] + math.remainder(got[3] - want[3], 2 * math.pi)
+    scale = {0.001: 1e-9, 0.01: 1e-9, 0.05: 1e-7}[dt]
+    np.testing.assert_allclose(got[:4], want[:4], atol=scale * 10)
+    np.testing.assert_allclose(got[4:], want[4:], atol=scale)
+
+
+def test_step_states_build_their_arrays_on_demand(cyclops: Vehicle) -> None:
+    """A stepped state holds its numbers and builds the arrays when read; whether or not
+    they were read, and however the state was made, the next step is the same."""
+    import dataclasses
+    import pickle
+
+    wrench = [60.0, -20.0, 30.0, 0.0, 0.0, 12.0]
+    s0 = run(cyclops, wrench, 1.0, 0.01, VehicleState(attitude=np.array([0.0, 0.0, 0.4])))
+    copy = pickle.loads(pickle.dumps(s0))
+    rebuilt = VehicleState(s0.time, np.array(s0.position), np.array(s0.attitude), np.array(s0.velocity),
+                           np.array(s0.angular_velocity), np.array(s0.acceleration))
+    flat = s0.flat()
+    assert len(flat) == 15 and flat == rebuilt.flat() == copy.flat()
+    np.testing.assert_array_equal(np.concatenate([s0.position, s0.attitude, s0.velocity,
+                                                  s0.angular_velocity, s0.acceleration]), flat)
+    assert s0.depth == flat[2] and s0.heading == flat[5]
+    nexts = [cyclops.step(s, 0.01, wrench).flat() for s in (s0, copy, rebuilt, VehicleState.from_flat(s0.time, flat))]
+    assert all(n == nexts[0] for n in nexts)
+    moved = dataclasses.replace(s0, position=np.array([1.0, 2.0, 3.0]))
+    assert moved.flat()[:3] == (1.0, 2.0, 3.0) and moved.flat()[3:] == flat[3:]
+    with pytest.raises(AttributeError):
+        s0.no_such_field  # noqa: B018
+    with pytest.raises(ValueError, match="15 values"):
+        VehicleState.from_flat(0.0, [0.0] * 14)
+
+
+def test_step_with_thrusters_is_wrench_held_then_advance() -> None:
+    """step_with_thrusters = the set's wrench at the step's start, held over the step,
+    then the rotors advanced to its end (the documented order), with a current."""
+    profile = load_vehicle_profile(CYCLOPS)
+    vehicle, ts, twin = Vehicle(profile), profile.thruster_set(), profile.thruster_set()
+    cur = Current.constant((0.1, -0.05, 0.0))
+    s = s2 = VehicleState()
+    for k in range(400):
+        if k % 20 == 0:
+            cmds = [0.4 * math.sin(0.3 * k + i) for i in range(8)]
+            ts.command_all("normalized", cmds, s.time)
+            twin.command_all("normalized", cmds, s2.time)
+        s = vehicle.step_with_thrusters(s, 0.005, ts, cur)
+        w = twin.wrench()
+        twin.advance(0.005, s2.time + 0.005)
+        s2 = vehicle.step(s2, 0.005, w, cur)
+    np.testing.assert_allclose(s.flat(), s2.flat(), rtol=1e-12, atol=1e-14)
+    assert s.time == s2.time
+    with pytest.raises(ValueError, match="dt must be > 0"):
+        vehicle.step_with_thrusters(s, 0.0, ts)
+    np.testing.assert_array_equal(ts.speeds, twin.speeds)  # a refused step does not advance the rotors
