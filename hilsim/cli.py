@@ -49,6 +49,9 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scenario", nargs="?", default=None,
                    help="scenario folder, .toml file or bundled name (default: water_tank)")
     p.add_argument("--fast", action="store_true", help="virtual clock: as fast as possible (tests, batch runs)")
+    p.add_argument("--time-scale", type=float, default=1.0,
+                   help="run the real-time clock this many times faster than the wall clock (e.g. 4 for a "
+                        "control stack under test that paces itself by the frames' timestamps)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
     p.add_argument("--endpoints", type=Path, default=None, help="write the endpoints as JSON to this file")
     p.add_argument("--bind", default="127.0.0.1", help="address servers listen on (default 127.0.0.1)")

@@ -28,7 +28,7 @@ from hilsim.config import ConfigError, Doc, load_toml
 from hilsim.devices import device_class
 from hilsim.devices.base import Device, Endpoint, RenderedFrame, RenderFailed
 from hilsim.resources import find_profile
-from hilsim.runtime.clock import RealTimeClock, VirtualClock
+from hilsim.runtime.clock import RealTimeClock, ScaledClock, VirtualClock
 from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, Scheduler, VehicleLoop
 from hilsim.runtime.worker import RenderWorker
 from hilsim.sim.scenario import Scenario, load_scenario
@@ -55,7 +55,7 @@ class Bridge:
                  broadcast: str = LOOPBACK, seed: int | None = None, record: Path | str | None = None,
                  physics_rate: float = DEFAULT_PHYSICS_RATE, run_dir: Path | str | None = None,
                  epoch: float | None = None, status_interval: float = 5.0,
-                 worker_timeout: float = 10.0) -> None:
+                 worker_timeout: float = 10.0, time_scale: float = 1.0) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.fast = fast
         self.bind = bind
@@ -68,7 +68,14 @@ class Bridge:
         self.run_dir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="hilsim-"))
         # async_margin=0: never block the loop to sharpen a tick; every link shares this loop,
         # and a tick a millisecond late costs nothing (the physics integrates to the tick's time)
-        self.scheduler = Scheduler(VirtualClock() if fast else RealTimeClock(async_margin=0.0))
+        if fast:
+            clock: VirtualClock | RealTimeClock = VirtualClock()
+        elif time_scale != 1.0:
+            clock = ScaledClock(time_scale)
+        else:
+            clock = RealTimeClock(async_margin=0.0)
+        self.time_scale = 1.0 if fast else float(time_scale)
+        self.scheduler = Scheduler(clock)
         self.vehicle = self._build_vehicle(physics_rate)
         self.worker = RenderWorker(self.scenario.path, self.seed, timeout=worker_timeout)
         self.devices: list[Device] = []
@@ -258,9 +265,9 @@ class Bridge:
         st = self.status()
         parts = []
         for name, ds in st["devices"].items():
-            if ds:
-                parts.append(name + "(" + ", ".join(f"{k} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
-                                                    for k, v in ds.items()) + ")")
+            shown = [f"{k} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
+                     for k, v in ds.items() if v and k not in ("device_id",)]
+            parts.append(f"{name}({', '.join(shown)})" if shown else name)
         log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d | %s", st["time_s"], st["depth_m"],
                  st["heading_deg"], st["late_ticks"], " ".join(parts) or "no devices")
 

@@ -9,6 +9,7 @@ not accumulate: over an hour the ticks stay on the grid.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from abc import ABC, abstractmethod
 from typing import Callable
@@ -91,6 +92,36 @@ class RealTimeClock(Clock):
         remaining = deadline - self.now()
         if remaining > self.async_margin:
             await asyncio.sleep(remaining - self.async_margin)
+        else:
+            await asyncio.sleep(0)
+        self.sleep_until(deadline)
+
+
+class ScaledClock(RealTimeClock):
+    """Real time running ``scale`` times faster than the wall clock [sim s per wall s].
+
+    For clients outside the process that pace themselves by the simulation's
+    timestamps (a control stack under test in CI): deadlines stay absolute,
+    so nothing drifts, and every wait sleeps ``1 / scale`` as long.
+    """
+
+    def __init__(self, scale: float, async_margin: float = 0.0):
+        if not (scale > 0 and math.isfinite(scale)):
+            raise ValueError(f"time scale must be a positive number, got {scale}")
+        self.scale = float(scale)
+        super().__init__(source=lambda: time.monotonic() * self.scale, async_margin=async_margin)
+
+    def sleep_until(self, deadline: float) -> None:
+        while True:
+            remaining = deadline - self.now()
+            if remaining <= 0:
+                return
+            time.sleep(remaining / self.scale)
+
+    async def sleep_until_async(self, deadline: float) -> None:
+        remaining = deadline - self.now()
+        if remaining > 0:
+            await asyncio.sleep(remaining / self.scale)
         else:
             await asyncio.sleep(0)
         self.sleep_until(deadline)

@@ -32,7 +32,8 @@ async def _serve(bridge: Bridge, duration: float | None, endpoints_file: object)
         print(endpoints_table(endpoints), flush=True)
         if endpoints_file is not None:
             write_endpoints(endpoints_file, endpoints)  # type: ignore[arg-type]
-        mode = "fast (virtual clock)" if bridge.fast else "real time"
+        mode = ("fast (virtual clock)" if bridge.fast else "real time" if bridge.time_scale == 1.0
+                else f"real time x {bridge.time_scale:g}")
         log.info("bridge running in %s%s", mode, f" for {duration:g} s" if duration else "; Ctrl-C to stop")
         if not stop_reason:
             await bridge.run(duration)
@@ -49,7 +50,7 @@ def run_command(args: argparse.Namespace) -> int:
     bridge = Bridge(find_scenario(args.scenario), fast=args.fast, bind=args.bind, broadcast=args.broadcast,
                     seed=args.seed, record=args.record, physics_rate=args.physics_rate,
                     epoch=args.epoch, status_interval=args.status_interval,
-                    worker_timeout=args.render_timeout, run_dir=args.pty_dir)
+                    worker_timeout=args.render_timeout, run_dir=args.pty_dir, time_scale=args.time_scale)
     asyncio.run(_serve(bridge, args.duration, args.endpoints))
     return 0
 

@@ -98,7 +98,9 @@ class Scheduler:
         before running); added later, at the first grid point not yet past."""
         if not (period > 0 and math.isfinite(period)):
             raise ValueError(f"event {name!r}: period must be a positive number of seconds, got {period}")
-        tol = min(1e-3, period / 4) if tolerance is None else float(tolerance)
+        # the default 1 ms is wall time: on a clock running k times faster it is k ms of sim time
+        scale = float(getattr(self.clock, "scale", 1.0))
+        tol = min(1e-3 * scale, period / 4) if tolerance is None else float(tolerance)
         ev = PeriodicEvent(name, float(period), callback, float(offset), int(priority), tol)
         if self.record_lateness:
             ev.stats.lateness = []
