@@ -142,3 +142,15 @@ class Device(ABC):
     def status(self) -> dict[str, float]:
         """Counters for the status line (clients, frames sent, drops, errors ...)."""
         return {}
+
+    #: device-level faults this device can show (``inject_fault``); link faults
+    #: (``bit_errors`` on a serial line, ``silent`` on a CAN bus) are the bridge's.
+    FAULTS: ClassVar[tuple[str, ...]] = ()
+
+    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
+        """Show ``fault`` on the wire as the real device would, until :meth:`clear_fault`."""
+        raise ValueError(f"device {self.name!r} ({self.protocol}) has no fault {fault!r}"
+                         + (f"; it has: {', '.join(self.FAULTS)}" if self.FAULTS else ""))
+
+    def clear_fault(self, fault: str) -> None:
+        """End ``fault``; the device behaves normally again."""

@@ -181,7 +181,23 @@ class DdfStreamDevice(Device):
 
     # -- pinging -----------------------------------------------------------------
 
+    # fault injection: "dropout" -- the sonar head stops pinging (clients stay connected,
+    # no frames arrive; the frame numbering resumes without a gap: no ping was fired)
+    FAULTS = ("dropout",)
+    dropout = False
+
+    def inject_fault(self, fault: str, params: Any) -> None:
+        if fault != "dropout":
+            super().inject_fault(fault, params)
+        self.dropout = True
+
+    def clear_fault(self, fault: str) -> None:
+        if fault == "dropout":
+            self.dropout = False
+
     def _wanted(self) -> bool:
+        if self.dropout:
+            return False
         return self._record is not None or (self.server is not None and self.server.stats.connected > 0)
 
     def _ping(self, t: float) -> Any:

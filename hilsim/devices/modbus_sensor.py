@@ -153,8 +153,44 @@ class ModbusSensorDevice(Device):
             raise ValueError(f"device {self.name!r}: rate must be > 0 Hz, got {rate}")
         return rate
 
+    # -- fault injection ---------------------------------------------------------
+    # dropout: the sensor stops answering (RTU: silence; TCP: gateway exception 0B),
+    #   except the Keller, which reports its channel error as NaN (see KellerDevice);
+    # stuck: the registers keep their last values; noise: every noise figure of the
+    #   sensor's profile multiplied by ``factor``.
+    FAULTS = ("dropout", "stuck", "noise")
+    stuck = False
+
+    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
+        if fault == "dropout":
+            self.target.silent = True
+        elif fault == "stuck":
+            self.stuck = True
+        elif fault == "noise":
+            factor = float(params.get("factor", 10.0))
+            if not (factor >= 0 and math.isfinite(factor)):
+                raise ValueError(f"noise factor must be >= 0, got {factor}")
+            if not hasattr(self, "_clean_profile"):
+                self._clean_profile = self.sensor.profile
+            p = self._clean_profile
+            noisy = {f.name: getattr(p, f.name) * factor for f in dataclasses.fields(p)
+                     if "noise" in f.name and isinstance(getattr(p, f.name), (int, float))}
+            self.sensor.profile = dataclasses.replace(p, **noisy)
+        else:
+            super().inject_fault(fault, params)
+
+    def clear_fault(self, fault: str) -> None:
+        if fault == "dropout":
+            self.target.silent = False
+        elif fault == "stuck":
+            self.stuck = False
+        elif fault == "noise" and hasattr(self, "_clean_profile"):
+            self.sensor.profile = self._clean_profile
+
     def sample(self, t: float = math.nan) -> None:
         """Sample the sensor at the vehicle's current state and publish it to the registers."""
+        if self.stuck:
+            return
         state = self.ctx.vehicle.state
         reading = self.sensor.sample(state)
         self.last_reading = reading
@@ -271,6 +307,21 @@ class KellerDevice(ModbusSensorDevice):
 
     def actions(self) -> dict[str, WriteAction]:
         return {"set_zero": self._set_zero}
+
+    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
+        """A Keller shows a failed pressure channel as NaN (its documented channel error)."""
+        if fault == "dropout":
+            self.channel_error = True
+            if self.last_reading is not None:
+                self.image.update(self.signals(self.last_reading), self.image.time)
+        else:
+            super().inject_fault(fault, params)
+
+    def clear_fault(self, fault: str) -> None:
+        if fault == "dropout":
+            self.channel_error = False
+        else:
+            super().clear_fault(fault)
 
     def _set_zero(self, register: Register, value: float) -> None:
         raw = self.last_reading.pressure if self.last_reading is not None else math.nan

@@ -124,8 +124,12 @@ class ModbusTarget:
             if r.on_write == "device_id":
                 image.store(r, self.device_id)
 
+    silent = False  # fault injection: a dead sensor answers nothing (TCP: gateway exception 0B)
+
     def answers(self, unit: int, tcp: bool) -> bool:
         """Whether a request to address ``unit`` is ours (0 on RTU is broadcast, not 'ours')."""
+        if self.silent:
+            return False
         if unit == self.device_id or unit == self.map.transparent_id:
             return True
         return tcp and unit in (0, 255)

@@ -10,6 +10,7 @@ device reads and writes the master side here. Properties:
   port at will: nothing errors, the device keeps its state, and bytes written
   while nobody listens are discarded rather than delivered stale (the input
   queue is flushed when it fills);
+* ``bit_error_rate`` > 0 flips bits both ways, as a noisy line does (fault injection);
 * output is paced at the configured baud rate (``bits_per_byte`` / baud per
   byte, 10 bits for 8N1), so replies arrive when a real line would deliver them.
 """
@@ -26,6 +27,8 @@ import tty
 from collections import deque
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +66,9 @@ class PtyLink:
         self._writer: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
+        self.bit_error_rate = 0.0   # fault injection: probability of each bit flipping, both ways
+        self.bits_flipped = 0
+        self._rng = np.random.default_rng(abs(hash(name)) % (2**32))
 
     @property
     def path(self) -> str:
@@ -150,6 +156,8 @@ class PtyLink:
             return
         if not data:
             return
+        if self.bit_error_rate > 0:
+            data = self._corrupt(data)
         self.bytes_in += len(data)
         if self.on_data is not None:
             try:
@@ -195,7 +203,19 @@ class PtyLink:
                     await asyncio.sleep(delay)
                 self._write_now(piece)
 
+    def _corrupt(self, data: bytes) -> bytes:
+        """Flip each bit with probability ``bit_error_rate`` (a noisy line)."""
+        bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8))
+        flips = self._rng.random(bits.size) < self.bit_error_rate
+        n = int(np.count_nonzero(flips))
+        if n == 0:
+            return data
+        self.bits_flipped += n
+        return np.packbits(bits ^ flips).tobytes()
+
     def _write_now(self, data: bytes) -> None:
+        if self.bit_error_rate > 0:
+            data = self._corrupt(data)
         view = memoryview(data)
         for _ in range(100):
             if not view:

@@ -34,7 +34,8 @@ from hilsim.runtime.worker import RenderWorker
 from hilsim.sim.scenario import Scenario, load_scenario
 from hilsim.sim.sonar_profile import SonarProfile, SonarSettings, load_sonar_profile
 from hilsim.sim.state import VehicleState
-from hilsim.sim.vehicle import Vehicle, load_vehicle_profile
+from hilsim.sim.vehicle import Current, Vehicle, load_vehicle_profile
+from hilsim.runtime.timeline import Timeline
 
 log = logging.getLogger("hilsim.bridge")
 T = TypeVar("T")
@@ -157,6 +158,8 @@ class Bridge:
             self.scheduler.clock.reset()
         if self.epoch is None:  # simulation time 0 is now, on the wall clock
             self._wall0 = time.time() - self.scheduler.clock.now()
+        self.timeline = Timeline(self, doc)
+        self.timeline.schedule()
         if self.status_interval > 0:
             self.scheduler.add("status", self.status_interval, self._log_status, priority=100,
                                tolerance=self.status_interval)
@@ -172,6 +175,33 @@ class Bridge:
 
     def stop(self) -> None:
         self.scheduler.stop()
+
+    # -- scripted changes (the timeline) ----------------------------------------
+
+    def at(self, t: float, callback: Callable[[float], Any], name: str = "at") -> None:
+        """Run ``callback(t)`` once at simulation time ``t`` [s] (now, if already past)."""
+        holder: list[Any] = []
+
+        def once(tt: float) -> Any:
+            self.scheduler.remove(holder[0])
+            return callback(tt)
+
+        holder.append(self.scheduler.add(name, 1e12, once, offset=max(t, 0.0), priority=5, tolerance=1e12))
+
+    def set_current(self, velocity: tuple[float, float, float]) -> None:
+        """The water current from now on: NED [m/s]."""
+        self.vehicle.current = None if not any(velocity) else Current.constant(velocity)
+
+    def teleport(self, position: tuple[float, float, float], rpy: tuple[float, float, float]) -> None:
+        """Put the vehicle at ``position`` (NED [m]) heading ``rpy[2]`` [rad], at rest."""
+        s = self.vehicle.state
+        self.vehicle.state = VehicleState(time=s.time, position=np.array(position, dtype=float),
+                                          attitude=np.array([0.0, 0.0, rpy[2]]))
+
+    async def move_object(self, name: str, position: tuple[float, float, float],
+                          rpy: tuple[float, float, float]) -> None:
+        """Place object ``name`` at a new pose (every sonar sees it from the next frame)."""
+        await self.worker.change_world("move", name, tuple(position), tuple(rpy))
 
     async def close(self) -> None:
         """Close every device and link, stop the worker, remove the run folder."""

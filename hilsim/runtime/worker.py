@@ -58,6 +58,7 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
     scenario = load_scenario(scenario_path)
     world = scenario.build_world()
     sonars: dict[str, ImagingSonar] = {}
+    placed: dict[str, Any] = {}  # object name -> its current placement (4, 4)
     conn.send(("ready", os.getpid()))
     while True:
         try:
@@ -83,6 +84,21 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
                 (position,) = args
                 hits = world.cast(np.asarray([position], dtype=float), np.array([[0.0, 0.0, 1.0]]))
                 conn.send((req_id, True, float(hits.t[0])))
+            elif op == "move":  # a scripted object motion (the timeline)
+                name, position, rpy = args
+                parts = [o for o in world.objects if o.name == name or o.name.startswith(name + "/")]
+                if not parts:
+                    raise KeyError(f"no object {name!r}")
+                old = placed.get(name)
+                if old is None:
+                    old = scenario.object_placement(name).matrix()
+                new = Pose.from_xyz_rpy(position, rpy).matrix()
+                delta = new @ np.linalg.inv(old)
+                for o in parts:
+                    o.mesh.apply_transform(delta)
+                placed[name] = new
+                world.rebuild()
+                conn.send((req_id, True, None))
             elif op == "crash":  # for tests of the restart path
                 os._exit(3)
             elif op == "hang":
@@ -112,6 +128,7 @@ class RenderWorker:
         self._lock = asyncio.Lock()
         self._ids = itertools.count(1)
         self._closed = False
+        self.replay: list[tuple[str, tuple[Any, ...]]] = []  # world changes to redo after a restart
 
     @property
     def pid(self) -> int | None:
@@ -129,6 +146,9 @@ class RenderWorker:
         except RenderFailed:
             raise RenderFailed(f"render worker did not start within {self.start_timeout:.0f} s") from None
         log.info("render worker started (pid %s)", pid)
+        for op, args in self.replay:  # a restarted worker gets the world as it was
+            self._conn.send((0, op, args))
+            await self._recv(self.start_timeout)
 
     async def _recv(self, timeout: float) -> Any:
         """Wait for one message on the pipe without blocking the loop."""
@@ -203,6 +223,12 @@ class RenderWorker:
                               settings, t, frame_index, np.asarray(body_position, dtype=float))
         self.renders += 1
         return out
+
+    async def change_world(self, op: str, *args: Any) -> None:
+        """A lasting change of the world (``move``): applied now and after any restart."""
+        self.replay.append((op, args))
+        if self._conn is not None:
+            await self.call(op, *args)
 
     async def close(self) -> None:
         self._closed = True

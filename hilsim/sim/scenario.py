@@ -98,6 +98,19 @@ class Scenario:
         return World([WorldObject(o.name, o.mesh.copy(), o.material, o.watertight) for o in self.objects],
                      self.water, **kwargs)
 
+    def raw_object_names(self) -> list[str]:
+        """The object names as written in the file (a multi-material mesh is one name)."""
+        return [str(o.get("name")) for o in self.raw.get("objects", []) if isinstance(o, Mapping)]
+
+    def object_placement(self, name: str) -> Pose:
+        """The pose an object is placed at in the file (its ``position_m`` / ``orientation_deg``)."""
+        for o in self.raw.get("objects", []):
+            if isinstance(o, Mapping) and o.get("name") == name:
+                xyz = [float(v) for v in o.get("position_m", (0.0, 0.0, 0.0))]
+                rpy = [math.radians(float(a)) for a in o.get("orientation_deg", (0.0, 0.0, 0.0))]
+                return Pose.from_xyz_rpy(xyz, rpy)
+        raise KeyError(f"no object {name!r} in scenario {self.name!r}")
+
     def sensor(self, name_or_kind: str) -> SensorMount:
         """The sensor mount with this name, or the first of this kind."""
         for s in self.sensors:

@@ -294,6 +294,7 @@ class ThrusterSet:
         self._timeout = [p.watchdog_timeout for p in profiles]
         self._dead = [p.dead_band for p in profiles]
         self._target = [0.0] * n    # target speed fraction (0 once the watchdog has tripped)
+        self._limit = [math.inf] * n      # fault injection: |target speed| <= limit [1]
         self._dev = [0.0] * n       # speed = target + dev * F of the thruster's group
         self._cmd_time = [-math.inf] * n
         self._timed_out = [True] * n
@@ -351,6 +352,11 @@ class ThrusterSet:
     def command(self, index: int, kind: str, value: float, now: float) -> None:
         """Command thruster ``index`` with ``value`` of ``kind`` at time ``now`` [s]."""
         target = target_speed(self._profiles[index], kind, float(value), self.supply_voltage)
+        limit = self._limit[index]
+        if target > limit:
+            target = limit
+        elif target < -limit:
+            target = -limit
         if target != self._target[index]:
             self._retarget(index, target)
         self._cmd_time[index] = now
@@ -358,6 +364,17 @@ class ThrusterSet:
         expiry = now + self._timeout[index]
         if expiry < self._expiry:
             self._expiry = expiry
+
+    def set_limit(self, index: int, fraction: float | None) -> None:
+        """Fault injection: cap thruster ``index``'s speed at ``fraction`` [0, 1] of full
+        speed (0: a failed thruster, its rotor spins down and stays stopped; 0 < f < 1: it
+        saturates early); ``None`` clears the fault. Commands keep arriving and counting
+        for the watchdog; only the speed they can reach changes."""
+        limit = math.inf if fraction is None else max(0.0, float(fraction))
+        self._limit[index] = limit
+        t = self._target[index]
+        if abs(t) > limit:
+            self._retarget(index, math.copysign(limit, t))
 
     def command_all(self, kind: str, values: Iterable[float], now: float) -> None:
         """Command every thruster at once (e.g. a DroneCAN RawCommand array); (n,) values."""

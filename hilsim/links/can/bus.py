@@ -49,6 +49,7 @@ class BusStats:
     forwarded: int = 0            # peer -> other peers (hub transports)
     errors: int = 0               # malformed input from peers (bad lines / messages)
     subscriber_errors: int = 0    # exceptions in device callbacks (our bugs)
+    silenced: int = 0             # frames lost while the bus was silent (fault injection)
     clients: int = 0              # peers connected now
 
 
@@ -83,6 +84,7 @@ class CanBus(ABC):
     """
 
     transport: ClassVar[str] = ""
+    silent = False  # fault injection: the bus carries nothing (a cut or unpowered bus)
 
     def __init__(self, name: str, channel: str = "can0", *, bitrate: int | None = 1_000_000,
                  burst: float = 0.05) -> None:
@@ -109,6 +111,9 @@ class CanBus(ABC):
     def send(self, frame: CanFrame) -> None:
         """Put a device's frame on the bus (to every peer)."""
         if self._closed:
+            return
+        if self.silent:
+            self.stats.silenced += 1
             return
         self.stats.frames_out += 1
         self._to_peers(frame, None)
@@ -157,6 +162,9 @@ class CanBus(ABC):
     def from_peer(self, frame: CanFrame, peer: Any = None, budget: TokenBucket | None = None) -> bool:
         """A frame a peer put on the bus: charge its budget, hand it to the devices and
         (hub transports) to the other peers. False if dropped over budget."""
+        if self.silent:
+            self.stats.silenced += 1
+            return False
         if budget is not None and not budget.take(frame.bits_on_wire):
             self.stats.dropped_in += 1
             return False
