@@ -147,7 +147,7 @@ class PtyLink:
 
     def _readable(self) -> None:
         try:
-            data = os.read(self.master, 65536)
+            data = os.read(self.master, 4096)  # a chunk per loop turn: a flooding host cannot stall the loop
         except BlockingIOError:
             return
         except OSError as exc:  # EIO: no slave open (we hold one, so rare)

@@ -7,7 +7,14 @@ decides what bytes mean; this module only moves them. Guarantees:
   of one, and never slows the others: each client has a queue of at most
   ``queue_len`` messages, a transport buffer capped at ``write_buffer`` bytes
   and (with ``sndbuf``) a capped kernel send buffer, so memory per client is bounded;
-* at most ``max_clients`` connections; more are refused with a log line;
+* at most ``max_clients`` connections; more are refused with a log line (at most
+  one a second per server, with how many were not shown, so a flood cannot flood the log);
+* one client blasting bytes cannot starve the others: the loop serves everyone
+  else between two ``read_size`` chunks of one client's input, and a client whose
+  input costs its (synchronous) ``on_data`` more than ``cpu_share`` of the loop
+  (with ``cpu_burst`` [s] of credit) is read more slowly: the kernel's buffers
+  fill and TCP pushes back on it. An async ``on_data`` paces itself (Modbus: its
+  request budget);
 * whatever a client sends or however it disconnects (mid-message, reset,
   half-open), the server keeps serving the others.
 """
@@ -18,6 +25,7 @@ import asyncio
 import itertools
 import logging
 import socket
+import time
 from dataclasses import dataclass, field
 from typing import Awaitable, Callable
 
@@ -33,6 +41,7 @@ class LinkStats:
     bytes_sent: int = 0
     messages_dropped: int = 0
     bytes_received: int = 0
+    throttled: int = 0          # clients read more slowly for the CPU their input took
 
 
 @dataclass(eq=False)
@@ -46,6 +55,9 @@ class Client:
     sent: int = 0
     dropped: int = 0
     closed: bool = False
+    cpu_credit: float = 0.0  # [s] of loop time this client's input may still take at once
+    cpu_t: float = 0.0       # [s] monotonic time of the last refill
+    throttled: bool = False
     state: dict = field(default_factory=dict)  # the device's per-client state (codec, settings)
 
     def __repr__(self) -> str:
@@ -70,6 +82,7 @@ class TcpServer:
     def __init__(self, name: str, host: str = "127.0.0.1", port: int = 0, *,
                  max_clients: int = 32, queue_len: int = 4, write_buffer: int = 256 * 1024,
                  read_size: int = 4096, idle_timeout: float | None = None, sndbuf: int | None = None,
+                 cpu_share: float | None = 0.25, cpu_burst: float = 0.05,
                  on_connect: OnConnect | None = None, on_data: OnData | None = None,
                  on_disconnect: OnDisconnect | None = None) -> None:
         self.name = name
@@ -81,6 +94,10 @@ class TcpServer:
         self.read_size = read_size
         self.idle_timeout = idle_timeout
         self.sndbuf = sndbuf
+        self.cpu_share = cpu_share
+        self.cpu_burst = cpu_burst
+        self._last_refusal_log = -1e9
+        self._unlogged_refusals = 0
         self.on_connect = on_connect
         self.on_data = on_data
         self.on_disconnect = on_disconnect
@@ -166,7 +183,7 @@ class TcpServer:
         peer_s = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
         if len(self.clients) >= self.max_clients:
             self.stats.refused += 1
-            log.warning("%s: refused %s: client limit %d reached", self.name, peer_s, self.max_clients)
+            self._log_refusal(peer_s)
             writer.transport.abort()
             return
         writer.transport.set_write_buffer_limits(high=self.write_buffer)
@@ -174,7 +191,8 @@ class TcpServer:
         if self.sndbuf is not None and sock is not None:
             # bound what the kernel holds for a client that does not read, too
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.sndbuf)
-        c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len))
+        c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len),
+                   cpu_credit=self.cpu_burst, cpu_t=time.monotonic())
         self.clients[c.id] = c
         self.stats.accepted += 1
         self.stats.connected = len(self.clients)
@@ -192,7 +210,17 @@ class TcpServer:
                     break
                 self.stats.bytes_received += len(data)
                 if self.on_data is not None:
-                    await _maybe_await(self.on_data(c, data))
+                    t0 = time.perf_counter()
+                    result = self.on_data(c, data)
+                    if result is not None:
+                        await result  # an async handler paces itself
+                    else:
+                        wait = self._charge(c, time.perf_counter() - t0)
+                        if wait > 0:
+                            await asyncio.sleep(wait)
+                # let the others in before this client's next chunk (asyncio hands over up to
+                # 256 KiB per read, which read() would otherwise return chunk after chunk)
+                await asyncio.sleep(0)
         except asyncio.TimeoutError:
             log.info("%s: client %s idle for %.0f s, dropped", self.name, peer_s, self.idle_timeout)
         except (ConnectionError, OSError):
@@ -210,6 +238,33 @@ class TcpServer:
                     await _maybe_await(self.on_disconnect(c))
                 except Exception:  # noqa: BLE001
                     log.exception("%s: on_disconnect failed", self.name)
+
+    def _log_refusal(self, peer: str) -> None:
+        now = time.monotonic()
+        if now - self._last_refusal_log >= 1.0:
+            more = (f" ({self._unlogged_refusals} more refused since the last such line)"
+                    if self._unlogged_refusals else "")
+            log.warning("%s: refused %s: client limit %d reached%s", self.name, peer, self.max_clients, more)
+            self._last_refusal_log, self._unlogged_refusals = now, 0
+        else:
+            self._unlogged_refusals += 1
+
+    def _charge(self, c: Client, used: float) -> float:
+        """Charge ``used`` [s] of loop time to client ``c``; returns how long [s] to wait before
+        reading it again (0 while it is within ``cpu_share``)."""
+        if not self.cpu_share:
+            return 0.0
+        now = time.monotonic()
+        c.cpu_credit = min(self.cpu_burst, c.cpu_credit + (now - c.cpu_t) * self.cpu_share) - used
+        c.cpu_t = now
+        if c.cpu_credit >= 0.0:
+            return 0.0
+        if not c.throttled:
+            c.throttled = True
+            self.stats.throttled += 1
+            log.info("%s: %s: its input takes over %.0f %% of the loop; reading it more slowly",
+                     self.name, c.peer, 100 * self.cpu_share)
+        return -c.cpu_credit / self.cpu_share
 
     async def _send_loop(self, c: Client) -> None:
         try:
