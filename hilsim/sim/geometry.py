@@ -10,6 +10,7 @@ tilted 45 deg *down* has pitch = -45 deg.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -61,7 +62,7 @@ class Pose:
     rotation: F64 = field(default_factory=lambda: np.eye(3))
 
     @staticmethod
-    def from_xyz_rpy(xyz: tuple[float, float, float] | F64, rpy: tuple[float, float, float] | F64) -> "Pose":
+    def from_xyz_rpy(xyz: Sequence[float] | F64, rpy: Sequence[float] | F64) -> "Pose":
         """Pose from a position [m] and roll, pitch, yaw [rad]."""
         return Pose(np.asarray(xyz, dtype=float).reshape(3), rpy_to_matrix(*(float(a) for a in rpy)))
 

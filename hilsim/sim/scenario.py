@@ -249,7 +249,7 @@ def _part_material(geom: trimesh.Trimesh) -> str | None:
 def _load_mesh_parts(doc: Doc, path: Path, where: str) -> list[tuple[str, str | None, trimesh.Trimesh]]:
     """Every (node name, material name, mesh in the file's frame) of a mesh file."""
     try:
-        loaded = trimesh.load(str(path), force="scene", process=False)
+        loaded: Any = trimesh.load(str(path), force="scene", process=False)
     except Exception as exc:  # trimesh raises many types for bad files
         raise doc.error(f"{where}.mesh", f"cannot load mesh {path.name}: {exc}") from None
     parts: list[tuple[str, str | None, trimesh.Trimesh]] = []
@@ -293,7 +293,8 @@ def _load_objects(doc: Doc, mats: Mapping[str, Material], warnings: list[str]) -
         place[:3, 3] = pose.position
         if "primitive" in t:
             mesh = _primitive(doc, t, str(t["primitive"]), where)
-            mesh.apply_scale(scale) if not np.allclose(scale, 1) else None
+            if not np.allclose(scale, 1):
+                mesh.apply_scale(scale)
             mesh.apply_transform(place)
             material = _material_ref(doc, mats, require(doc, t, "material", where), f"{where}.material")
             out.append(WorldObject(name, mesh, material, bool(mesh.is_watertight)))
@@ -331,7 +332,7 @@ def _load_objects(doc: Doc, mats: Mapping[str, Material], warnings: list[str]) -
             groups.setdefault(str(mat_name), []).append(g)
         multi = len(groups) > 1
         for mat_name, meshes in groups.items():
-            mesh = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+            mesh = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]  # type: ignore[assignment]
             if np.linalg.det(to_ned[:3, :3]) < 0:
                 mesh.invert()  # a mirroring axis change flips the winding; restore outward normals
             mesh.apply_transform(place)
