@@ -1,0 +1,135 @@
+"""Navigation sensors on Modbus TCP (pymodbus) and thrusters on VESC CAN through socketcand
+(python-can, cantools), and the bridge's endpoints file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+from typing import Any
+
+from auv_vehicle import THRUSTERS, G
+
+
+class ModbusSensors:
+    """Keller depth and WitMotion attitude over Modbus TCP (pymodbus)."""
+
+    def __init__(self, depth_addr: tuple[str, int], depth_id: int, imu_addr: tuple[str, int], imu_id: int,
+                 rho: float) -> None:
+        from pymodbus.client import ModbusTcpClient
+
+        self.keller = ModbusTcpClient(depth_addr[0], port=depth_addr[1], timeout=1.0, retries=1)
+        self.imu = ModbusTcpClient(imu_addr[0], port=imu_addr[1], timeout=1.0, retries=1)
+        for c, what in ((self.keller, "depth"), (self.imu, "imu")):
+            if not c.connect():
+                raise ConnectionError(f"cannot connect to the {what} sensor (Modbus TCP)")
+        self.depth_id, self.imu_id, self.rho = depth_id, imu_id, rho
+        self.errors = 0
+
+    def depth(self) -> float:
+        """[m] positive down, from P1 [bar abs] (float32 at 0x0002, high word first); NaN on error."""
+        try:
+            rr = self.keller.read_holding_registers(0x0002, count=2, device_id=self.depth_id)
+            if rr.isError():
+                raise IOError(str(rr))
+            p1 = float(self.keller.convert_from_registers(rr.registers, self.keller.DATATYPE.FLOAT32))
+        except Exception:  # noqa: BLE001 - pymodbus raises several types; the caller holds the last value
+            self.errors += 1
+            return math.nan
+        if not math.isfinite(p1):
+            self.errors += 1  # NaN = channel error on a Keller
+        return (p1 * 1e5 - 101325.0) / (self.rho * G)
+
+    def attitude(self) -> tuple[float, float]:
+        """(NED heading [deg] 0..360, NED yaw rate [deg/s]) from WitMotion Yaw (0x3F) and GZ (0x39):
+        int16, Z-up sensor frame, so both are negated."""
+        try:
+            rr = self.imu.read_holding_registers(0x37, count=9, device_id=self.imu_id)  # GX..Yaw
+            if rr.isError():
+                raise IOError(str(rr))
+        except Exception:  # noqa: BLE001
+            self.errors += 1
+            return math.nan, math.nan
+        regs = [r - 65536 if r >= 32768 else r for r in rr.registers]
+        gz = regs[0x39 - 0x37] * 2000.0 / 32768.0
+        yaw = regs[0x3F - 0x37] * 180.0 / 32768.0
+        return (-yaw) % 360.0, -gz
+
+    def close(self) -> None:
+        self.keller.close()
+        self.imu.close()
+
+
+VESC_COMMANDS = {"duty": (0, "SET_DUTY", "duty", 1e-5), "current": (1, "SET_CURRENT", "current", 1e-3),
+                 "rpm": (3, "SET_RPM", "erpm", 1.0)}
+VESC_STATUS_1 = 9
+
+
+class VescCan:
+    """VESC commands onto a socketcand CAN bus (python-can); STATUS_1 (ERPM) read back in python-can's
+    Notifier thread. Encoded with cantools from the DBC when given, else packed per the DBC by hand:
+    extended id (command << 8) | controller id, big-endian int32 value / scale."""
+
+    def __init__(self, host: str, port: int, channel: str, kind: str, dbc: Path | None) -> None:
+        import logging
+
+        import can
+
+        # python-can's socketcand client warns each time a TCP read ends inside a message: routine here
+        logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
+        self.can = can
+        self.kind = kind
+        self.db = None
+        if dbc is not None and dbc.is_file():
+            import cantools
+
+            self.db = cantools.database.load_file(str(dbc))
+        self.bus = can.Bus(interface="socketcand", host=host, port=port, channel=channel)
+        self.erpm: dict[int, float] = {}   # last STATUS_1 ERPM per controller id
+        self.status_frames = 0
+        self.sent = 0
+        self.notifier = can.Notifier(self.bus, [self._on_message], timeout=0.2)
+
+    def encode(self, controller: int, value: float) -> tuple[int, bytes]:
+        cmd, name, signal_name, scale = VESC_COMMANDS[self.kind]
+        if self.db is not None:
+            msg = self.db.get_message_by_name(f"VESC{controller}_{name}")
+            return msg.frame_id, bytes(msg.encode({signal_name: value}))
+        return (cmd << 8) | controller, struct.pack(">i", int(round(value / scale)))
+
+    def send(self, values: list[float]) -> None:
+        """One command per thruster, in THRUSTERS order."""
+        for (_, cid, _, _), v in zip(THRUSTERS, values):
+            arb, data = self.encode(cid, v)
+            self.bus.send(self.can.Message(arbitration_id=arb, data=data, is_extended_id=True))
+            self.sent += 1
+
+    def _on_message(self, msg: Any) -> None:
+        if msg.is_extended_id and (msg.arbitration_id >> 8) == VESC_STATUS_1 and len(msg.data) >= 4:
+            self.erpm[msg.arbitration_id & 0xFF] = struct.unpack_from(">i", bytes(msg.data))[0]
+            self.status_frames += 1
+
+    def close(self) -> None:
+        self.notifier.stop(timeout=1.0)
+        self.bus.shutdown()
+
+
+def load_endpoints(path: Path) -> dict[str, dict[str, Any]]:
+    """The bridge's endpoints JSON (a list of {device, protocol, transport, address, ...}) by protocol,
+    TCP / socketcand entries only."""
+    out: dict[str, dict[str, Any]] = {}
+    for e in json.loads(path.read_text()):
+        if e.get("transport") in ("tcp", "socketcand"):
+            out.setdefault(e["protocol"], e)
+    need = ["ddf-stream", "modbus-keller", "modbus-witmotion", "vesc-can"]
+    missing = [n for n in need if n not in out]
+    if missing:
+        raise ValueError(f"{path}: no endpoint for {', '.join(missing)}")
+    return out
+
+
+def host_port(address: str) -> tuple[str, int]:
+    host, port = address.rsplit(":", 1)
+    return host, int(port)
