@@ -257,6 +257,7 @@ class VehicleLoop:
         self.physics_rate = float(physics_rate)
         self.readings: dict[str, Any] = {}
         self.wrench: Sequence[float] = (0.0,) * 6  # used when there are no thrusters
+        self.surface = True  # the vehicle cannot rise above the water surface (depth 0)
 
     def physics_tick(self, t: float) -> None:
         """Advance the state to time ``t`` [s]."""
@@ -266,9 +267,19 @@ class VehicleLoop:
             return
         thrusters = self.thrusters
         if thrusters is not None:
-            self.state = self.vehicle.step_with_thrusters(state, dt, thrusters, self.current)
+            new = self.vehicle.step_with_thrusters(state, dt, thrusters, self.current)
         else:
-            self.state = self.vehicle.step(state, dt, self.wrench, self.current)
+            new = self.vehicle.step(state, dt, self.wrench, self.current)
+        f = new.flat()
+        if f[2] < 0.0 and self.surface:
+            # the water surface: a positively buoyant vehicle floats there (depth 0) instead
+            # of rising out of the water; its upward heave stops
+            v = list(f)
+            v[2] = 0.0
+            v[8] = max(v[8], 0.0)
+            v[14] = max(v[14], 0.0)
+            new = type(new).from_flat(new.time, v)
+        self.state = new
 
     def attach(self, scheduler: Scheduler, sensors: Sequence[Any] = (),
                on_reading: Callable[[Any, Any], None] | None = None) -> list[PeriodicEvent]:

@@ -219,3 +219,20 @@ def test_run_async_with_a_virtual_clock_equals_run() -> None:
     s2, loop2, log2 = build(VirtualClock())
     asyncio.run(s2.run_async(until=5.0))
     assert flatten(log1) == flatten(log2)
+
+
+def test_a_buoyant_vehicle_floats_at_the_surface_instead_of_leaving_the_water():
+    from hilsim.resources import find_profile
+    from hilsim.runtime.clock import VirtualClock
+    from hilsim.runtime.scheduler import Scheduler, VehicleLoop
+    from hilsim.sim.state import VehicleState
+    from hilsim.sim.vehicle import Vehicle, load_vehicle_profile
+
+    profile = load_vehicle_profile(find_profile("vehicles", "cyclops"))
+    loop = VehicleLoop(Vehicle(profile), profile.thruster_set(),
+                       VehicleState(position=np.array([0.0, 0.0, 0.05])))
+    sched = Scheduler(VirtualClock())
+    loop.attach(sched)
+    sched.run(until=120.0)  # W_w = -2.5 N: it rises 0.05 m in a few seconds, then floats
+    assert loop.state.depth == 0.0
+    assert loop.state.velocity[2] >= 0.0
