@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 TSTAMP  := $(VENV)/.installed-test
 OUT     ?= out
 
-.PHONY: run render experiment test install install-test bench clean lint
+.PHONY: run bridge render experiment test install install-test bench clean lint
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -27,11 +27,16 @@ experiment: $(STAMP)
 
 test: $(TSTAMP)
 
-# The main job: the live bridge on the default scenario (the paper's water tank),
-# serving every device until Ctrl-C. Its endpoints are printed and written to $(OUT)/endpoints.json.
+# The main job: the live bridge on the default scenario (the paper's water tank) with the
+# reference control stack (examples/) flying its mission over the wire; live status, then a
+# summary and plots in $(OUT)/mission. RUN_ARGS="--time-scale 4" runs it 4x faster.
 run: $(STAMP)
+	$(BIN)/python examples/demo.py --out $(OUT)/mission $(RUN_ARGS)
+
+# The bridge alone, serving every device until Ctrl-C (endpoints in $(OUT)/endpoints.json).
+bridge: $(STAMP)
 	mkdir -p $(OUT)
-	$(BIN)/hilsim run --endpoints $(OUT)/endpoints.json $(RUN_ARGS)
+	$(BIN)/hilsim run --endpoints $(OUT)/endpoints.json $(BRIDGE_ARGS)
 
 # The paper's Fig. 4: sonar and camera frames at positions A, B, C.
 render: $(STAMP)
