@@ -10,11 +10,12 @@ decides what bytes mean; this module only moves them. Guarantees:
 * at most ``max_clients`` connections; more are refused with a log line (at most
   one a second per server, with how many were not shown, so a flood cannot flood the log);
 * one client blasting bytes cannot starve the others: the loop serves everyone
-  else between two ``read_size`` chunks of one client's input, and a client whose
-  input costs its (synchronous) ``on_data`` more than ``cpu_share`` of the loop
-  (with ``cpu_burst`` [s] of credit) is read more slowly: the kernel's buffers
-  fill and TCP pushes back on it. An async ``on_data`` paces itself (Modbus: its
-  request budget);
+  else between two chunks of one client's input; a client whose chunks cost its
+  (synchronous) ``on_data`` more than ``CHUNK_TIME`` of CPU is read in smaller ones
+  (down to ``MIN_READ`` bytes), so no chunk holds the loop long; and a client whose
+  input costs more than ``cpu_share`` of the loop (with ``cpu_burst`` [s] of
+  credit) is read more slowly: the kernel's buffers fill and TCP pushes back on it.
+  An async ``on_data`` paces itself (Modbus: its request budget);
 * whatever a client sends or however it disconnects (mid-message, reset,
   half-open), the server keeps serving the others.
 """
@@ -30,6 +31,9 @@ from dataclasses import dataclass, field
 from typing import Awaitable, Callable
 
 log = logging.getLogger(__name__)
+
+CHUNK_TIME = 0.002  # [s] of CPU: a client whose chunk of input took longer is read in smaller ones
+MIN_READ = 256      # [bytes]
 
 
 @dataclass
@@ -58,6 +62,7 @@ class Client:
     cpu_credit: float = 0.0  # [s] of loop time this client's input may still take at once
     cpu_t: float = 0.0       # [s] monotonic time of the last refill
     throttled: bool = False
+    read_size: int = 4096    # [bytes] adapted to what its input costs
     state: dict = field(default_factory=dict)  # the device's per-client state (codec, settings)
 
     def __repr__(self) -> str:
@@ -192,7 +197,7 @@ class TcpServer:
             # bound what the kernel holds for a client that does not read, too
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.sndbuf)
         c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len),
-                   cpu_credit=self.cpu_burst, cpu_t=time.monotonic())
+                   cpu_credit=self.cpu_burst, cpu_t=time.monotonic(), read_size=self.read_size)
         self.clients[c.id] = c
         self.stats.accepted += 1
         self.stats.connected = len(self.clients)
@@ -203,9 +208,9 @@ class TcpServer:
                 await _maybe_await(self.on_connect(c))
             while not c.closed:
                 if self.idle_timeout is not None:
-                    data = await asyncio.wait_for(reader.read(self.read_size), self.idle_timeout)
+                    data = await asyncio.wait_for(reader.read(c.read_size), self.idle_timeout)
                 else:
-                    data = await reader.read(self.read_size)
+                    data = await reader.read(c.read_size)
                 if not data:
                     break
                 self.stats.bytes_received += len(data)
@@ -217,7 +222,12 @@ class TcpServer:
                     if result is not None:
                         await result  # an async handler paces itself
                     else:
-                        wait = self._charge(c, time.thread_time() - t0)
+                        used = time.thread_time() - t0
+                        if used > CHUNK_TIME:  # costly input: smaller chunks, shorter holds of the loop
+                            c.read_size = max(MIN_READ, c.read_size // 2)
+                        elif used < CHUNK_TIME / 4 and c.read_size < self.read_size:
+                            c.read_size = min(self.read_size, 2 * c.read_size)
+                        wait = self._charge(c, used)
                         if wait > 0:
                             await asyncio.sleep(wait)
                 # let the others in before this client's next chunk (asyncio hands over up to
