@@ -748,8 +748,8 @@ def start_never_reading(protocol: str, sock: socket.socket, udp: socket.socket |
     elif protocol == "socketcand":
         socketcand_handshake(sock)
     elif protocol.startswith("modbus"):
-        try:  # pipelined requests whose replies are never read (as many as the socket takes now)
-            sock.send(b"".join(mbap_request(i, 1, 2, 2) for i in range(2000)), socket.MSG_DONTWAIT)
+        try:  # pipelined requests whose replies are never read
+            sock.send(b"".join(mbap_request(i, 1, 2, 2) for i in range(100)), socket.MSG_DONTWAIT)
         except OSError:
             pass
     # ddf-stream: frames come by themselves
@@ -1020,3 +1020,85 @@ def abuse_child(kind: str, endpoints: list[dict], seconds: float, turn: int, q: 
         q.put(run_abuse(kind, endpoints, seconds, turn))
     except Exception as exc:  # noqa: BLE001 - reported in the table
         q.put({"kind": kind, "error": f"{type(exc).__name__}: {exc}"})
+
+
+def abuse_every_server(endpoints: list[dict], limits: dict[str, int], hold: int, flood: int, resets: int,
+                       hold_s: float, go: Any, q: Any) -> None:
+    """tests/runtime/test_abuse.py's abusers, in a child process so that their CPU does not
+    compete with the well-behaved clients' interpreter. Reports on ``q``:
+
+    1. ("flooded", {server: counts}, seconds): ``flood`` connects reset at once and ``resets``
+       half messages + reset, on every TCP server at once; then waits for ``go``;
+    2. ("holding", accepted, refused): ``hold`` connections opened at once per server; those
+       accepted become, in turn, stalled-huge-header, never-reading, half-closed and idle
+       clients; an ARIS byte blaster and a second, smaller connect flood run meanwhile;
+    3. ("released", {"blaster_mb": ...}) after ``hold_s`` seconds, everything reset.
+    """
+    try:
+        servers = tcp_servers(endpoints)
+        t0 = time.monotonic()
+        floods: dict[str, dict[str, int]] = {}
+
+        def one(s: dict, n: int, r: int, deadline: float) -> None:
+            out = connect_flood(s["address"], n, deadline)
+            for _ in range(r):
+                if time.monotonic() > deadline:
+                    break
+                try:
+                    c = socket.create_connection(host_port(s["address"]), timeout=1.0)
+                    c.sendall(partial_message(s["protocol"]))
+                    reset(c)
+                except OSError:
+                    pass
+            key = s["address"]
+            floods[key] = {k: floods.get(key, {}).get(k, 0) + v for k, v in out.items()}
+
+        def flood_all(n: int, r: int, seconds: float) -> None:
+            start = time.monotonic()
+            threads = [threading.Thread(target=one, args=(s, n, r, start + seconds), daemon=True) for s in servers]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(seconds + 5)
+
+        flood_all(flood, resets, 15.0)
+        q.put(("flooded", dict(floods), time.monotonic() - t0))
+        go.wait(30)
+        held: list[socket.socket] = []
+        udps: list[socket.socket] = []
+        opened = {s["address"]: open_many(s["address"], hold) for s in servers}
+        for socks in opened.values():
+            held += socks
+        time.sleep(1.0)
+        accepted: dict[str, int] = {}
+        refused_: dict[str, int] = {}
+        for s in servers:
+            socks = opened[s["address"]]
+            ok = [k for k in socks if not refused(k)]
+            accepted[s["address"]], refused_[s["address"]] = len(ok), len(socks) - len(ok)
+            for i, k in enumerate(ok):
+                try:
+                    if i % 4 == 0:
+                        k.sendall(huge_header(s["protocol"]))
+                    elif i % 4 == 1:
+                        udps.append(udp_socket(4096))
+                        start_never_reading(s["protocol"], k, udps[-1], rate_code=4, frame_rate=3.0)
+                    elif i % 4 == 2:
+                        k.shutdown(socket.SHUT_WR)  # half-closed: FIN sent, still open
+                    # i % 4 == 3: idle, sends nothing
+                except OSError:
+                    pass  # the server may already have dropped it (a bad header, a keep-alive)
+        aris = next(s for s in servers if s["protocol"] == "aris")
+        b = Blaster(aris["address"], junk("aris"))
+        b.start()
+        again = threading.Thread(target=flood_all, args=(flood // 3, 0, hold_s), daemon=True)
+        again.start()
+        q.put(("holding", accepted, refused_))
+        time.sleep(hold_s)
+        b.stop()
+        again.join(10)
+        close_all(held)
+        close_all(udps, rst=False)
+        q.put(("released", {"blaster_mb": round(b.sent / 1e6, 1), "floods": floods}))
+    except Exception as exc:  # noqa: BLE001 - reported to the test
+        q.put(("error", f"{type(exc).__name__}: {exc}", None))
