@@ -155,10 +155,10 @@ def test_a_stalled_client_loses_whole_frames_without_slowing_others(bridge):
     time.sleep(0.5)
     fh = read_file_header(stalled)
     assert fh["signature"] == b"DDF\x04"
-    stalled.settimeout(5)
+    stalled.settimeout(15)
     # what it holds is bounded (queue + capped buffers: a few frames), so within a few
     # frames it jumps to live ones (reading slowly: its 4 kB window throttles TCP)
-    seen = [read_frame(stalled, BEAMS, SAMPLES).number for _ in range(8)]
+    seen = [read_frame(stalled, BEAMS, SAMPLES).number for _ in range(6)]
     stalled.close()
     for g in goods:
         g.close()
