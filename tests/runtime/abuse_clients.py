@@ -1022,8 +1022,8 @@ def abuse_child(kind: str, endpoints: list[dict], seconds: float, turn: int, q: 
         q.put({"kind": kind, "error": f"{type(exc).__name__}: {exc}"})
 
 
-def abuse_every_server(endpoints: list[dict], limits: dict[str, int], hold: int, flood: int, resets: int,
-                       hold_s: float, go: Any, q: Any) -> None:
+def abuse_every_server(endpoints: list[dict], hold: int, flood: int, resets: int, hold_s: float, go: Any,
+                       q: Any, blast: bool = False) -> None:
     """tests/runtime/test_abuse.py's abusers, in a child process so that their CPU does not
     compete with the well-behaved clients' interpreter. Reports on ``q``:
 
@@ -1031,7 +1031,8 @@ def abuse_every_server(endpoints: list[dict], limits: dict[str, int], hold: int,
        half messages + reset, on every TCP server at once; then waits for ``go``;
     2. ("holding", accepted, refused): ``hold`` connections opened at once per server; those
        accepted become, in turn, stalled-huge-header, never-reading, half-closed and idle
-       clients; an ARIS byte blaster and a second, smaller connect flood run meanwhile;
+       clients; a second, smaller connect flood runs meanwhile (and with ``blast`` an ARIS
+       byte blaster, which takes a core of its own);
     3. ("released", {"blaster_mb": ...}) after ``hold_s`` seconds, everything reset.
     """
     try:
@@ -1090,12 +1091,14 @@ def abuse_every_server(endpoints: list[dict], limits: dict[str, int], hold: int,
                     pass  # the server may already have dropped it (a bad header, a keep-alive)
         aris = next(s for s in servers if s["protocol"] == "aris")
         b = Blaster(aris["address"], junk("aris"))
-        b.start()
+        if blast:
+            b.start()
         again = threading.Thread(target=flood_all, args=(flood // 3, 0, hold_s), daemon=True)
         again.start()
         q.put(("holding", accepted, refused_))
         time.sleep(hold_s)
-        b.stop()
+        if blast:
+            b.stop()
         again.join(10)
         close_all(held)
         close_all(udps, rst=False)
