@@ -484,10 +484,16 @@ def parse_command(payload: bytes, strict: bool = False) -> CommandEvent:
         return BadCommand("unknown fields", len(payload))
     t = int(m.type)
     if t == SET_DATETIME and m.HasField("dateTime"):
-        return SetDateTime(m.dateTime.dateTime)
+        text: object = m.dateTime.dateTime
+        if not isinstance(text, str):  # proto2 strings are not checked: invalid UTF-8 comes back as bytes
+            return BadCommand("dateTime is not UTF-8 text", len(payload))
+        return SetDateTime(text)
     if t == SET_FRAMESTREAM_RECEIVER and m.HasField("frameStreamReceiver"):
         r = m.frameStreamReceiver
-        return SetFrameStreamReceiver(int(r.port), r.ip if r.HasField("ip") else None)
+        ip: object = r.ip if r.HasField("ip") else None
+        if ip is not None and not isinstance(ip, str):
+            return BadCommand("frameStreamReceiver ip is not UTF-8 text", len(payload))
+        return SetFrameStreamReceiver(int(r.port), ip)
     if t == SET_ACOUSTICS and m.HasField("settings"):
         s = m.settings
         return SetAcoustics(AcousticSettings(
@@ -716,8 +722,9 @@ class FrameAssembler:
 
     Keeps one frame in progress; a part of a newer frame drops an incomplete
     older one (:class:`DroppedFrame`); parts of older frames are ignored.
-    Memory is bounded by ``max_data`` bytes (a larger total_data_size is a
-    :class:`BadDatagram`).
+    Memory is bounded by ``2 x max_data`` bytes: the frame and a map of the
+    bytes received (a larger total_data_size is a :class:`BadDatagram`). A
+    frame is complete when every byte was received, however the parts overlap.
     """
 
     def __init__(self, max_data: int = MAX_FRAME_DATA * 2) -> None:
@@ -726,7 +733,7 @@ class FrameAssembler:
         self._total = 0
         self._data = bytearray()
         self._header: bytes | None = None
-        self._got: set[int] = set()
+        self._got = bytearray()  # 1 per byte of the frame received
         self._received = 0
         self._done = -1
 
@@ -750,17 +757,17 @@ class FrameAssembler:
                 out.append(DroppedFrame(self._index, self._received, self._total))
             self._index, self._total = idx, total
             self._data = bytearray(total)
-            self._header, self._got, self._received = None, set(), 0
+            self._header, self._got, self._received = None, bytearray(total), 0
         if total != self._total:
             return out + [BadDatagram("total_data_size changed within a frame")]
         if m.HasField("header"):
             self._header = bytes(m.header[:HEADER_SIZE]).ljust(HEADER_SIZE, b"\0")
-        if off not in self._got:
-            self._got.add(off)
-            self._data[off : off + len(m.data)] = m.data
-            self._received += len(m.data)
+        n = len(m.data)
+        self._received += n - self._got.count(1, off, off + n)
+        self._got[off : off + n] = b"\x01" * n
+        self._data[off : off + n] = m.data
         if self._received >= total and self._header is not None:
             out.append(AssembledFrame(idx, self._header, bytes(self._data)))
             self._done = idx
-            self._data = bytearray()
+            self._data, self._got = bytearray(), bytearray()
         return out
