@@ -167,8 +167,11 @@ class DdfStreamDevice(Device):
             self.bad_commands += 1
             return False, ev.reason
         if isinstance(ev, SetRate):
-            self.rate = float(ev.rate_hz)
-            self._schedule()
+            # re-adding the ping event moves its next tick to the next grid point: do it only
+            # when the rate really changes (a client repeating RATE must not stop the frames)
+            if float(ev.rate_hz) != self.rate:
+                self.rate = float(ev.rate_hz)
+                self._schedule()
         elif isinstance(ev, SetWindow):
             self.start_code, self.length_code = ev.start_code, ev.length_code
             self.settings = self._settings()
