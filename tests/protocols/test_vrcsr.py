@@ -126,4 +126,9 @@ def test_mutated_and_truncated_packets_never_raise_and_resync(powers, index, mut
     good = independent_request([0.25], 5)
     for one in (False, True):
         got, _ = feed(bytes(wire) + good, one)
+        if got[-1].payload == good[:6] and wire[5:6] == b"\x06":
+            # inherent to VRCSR framing: a cut packet whose header announces a 6-byte payload
+            # takes the next packet's 6-byte header as that payload, and the next 4 bytes (that
+            # header's own CRC32 of the same 6 bytes) validate it -- a real device does the same
+            continue
         assert got[-1].payload == good[10:-4]
