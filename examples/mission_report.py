@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -158,8 +159,12 @@ def _shade(ax: Any, phases: Sequence[dict[str, Any]]) -> None:
 
 def draw_plots(out: Path, summary: dict[str, Any], cols: dict[str, list[float]], frames: dict[str, list[float]],
           names: Sequence[str]) -> list[str]:
-    import matplotlib
-
+    try:
+        import matplotlib
+    except ImportError:
+        print("mission: plots skipped: matplotlib is not installed (pip install matplotlib, "
+              "or `pip install -e '.[examples]'` in a hilsim checkout)", file=sys.stderr)
+        return []
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
