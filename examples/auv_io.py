@@ -116,6 +116,43 @@ class VescCan:
         self.bus.shutdown()
 
 
+class EscHealth:
+    """Flags a thruster whose ESC reports a stopped rotor (|ERPM| < ``min_erpm`` in STATUS_1) while a
+    thruster asked for no more thrust spins: a failed motor, a fouled propeller, a dead ESC. Comparing
+    with the others keeps small demands inside the ESCs' dead band (every rotor stopped) from counting.
+    Ticks with that evidence add up (a tick where the thruster spins starts over); ``hold_s`` seconds of
+    it flag the thruster. What a real stack does next is its own business; this one reports it (a
+    warning line, the summary) and keeps flying on the others (its integrators absorb the loss)."""
+
+    def __init__(self, names: list[str], min_erpm: float = 50.0, hold_s: float = 1.5) -> None:
+        self.names = names
+        self.min_erpm, self.hold_s = min_erpm, hold_s
+        self.evidence = [0.0] * len(names)            # [s] of stalled-while-peers-spin
+        self.faults: list[dict[str, Any]] = []        # {"thruster", "controller", "t_s"} in detection order
+        self.flagged: set[int] = set()
+
+    def update(self, t: float, dt: float, thrusts: list[float], erpm: list[float]) -> list[str]:
+        """One control tick of ``dt`` [s]: demanded thrust [N] and reported ERPM per thruster (NaN: no
+        telemetry yet). Returns the names newly flagged at this tick."""
+        spinning = [math.isfinite(e) and abs(e) >= self.min_erpm for e in erpm]
+        new = []
+        for i, (f, e) in enumerate(zip(thrusts, erpm)):
+            if not math.isfinite(e) or i in self.flagged:
+                continue
+            if spinning[i]:
+                self.evidence[i] = 0.0
+                continue
+            if abs(f) > 0 and any(spinning[j] and abs(thrusts[j]) <= abs(f) * 1.05 for j in range(len(erpm))
+                                  if j != i):
+                self.evidence[i] += dt
+                if self.evidence[i] >= self.hold_s:
+                    self.flagged.add(i)
+                    self.faults.append({"thruster": self.names[i], "controller": THRUSTERS[i][1],
+                                        "t_s": round(t, 2)})
+                    new.append(self.names[i])
+        return new
+
+
 def load_endpoints(path: Path) -> dict[str, dict[str, Any]]:
     """The bridge's endpoints JSON (a list of {device, protocol, transport, address, ...}) by protocol,
     TCP / socketcand entries only."""

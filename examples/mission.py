@@ -45,7 +45,7 @@ if str(HERE) not in sys.path:  # the stack's modules live next to this file
     sys.path.insert(0, str(HERE))
 
 from auv_control import Mission, Params, wrap180  # noqa: E402
-from auv_io import VESC_COMMANDS, ModbusSensors, VescCan, host_port, load_endpoints  # noqa: E402
+from auv_io import VESC_COMMANDS, EscHealth, ModbusSensors, VescCan, host_port, load_endpoints  # noqa: E402
 from auv_sonar import DdfSonar, Detection, SimClock, TargetDetector  # noqa: E402
 from auv_vehicle import THRUSTERS  # noqa: E402
 from mission_report import write_outputs  # noqa: E402
@@ -126,6 +126,7 @@ def run(a: argparse.Namespace) -> int:
                    vc.get("channel", "can0"), a.esc, a.dbc)
     mission = Mission(p, esc=a.esc)
     thr = mission.thr
+    health = EscHealth([n for n, _, _, _ in THRUSTERS])
     log = Log()
     frames_log = Log()
     stop = threading.Event()
@@ -164,6 +165,7 @@ def run(a: argparse.Namespace) -> int:
                 break
             # -- sense ---------------------------------------------------------------------------
             depth = sensors.depth()
+            depth_ok = math.isfinite(depth)
             heading, yaw_rate = sensors.attitude()
             if math.isfinite(depth):
                 last_depth, last_depth_t = depth, t
@@ -193,6 +195,10 @@ def run(a: argparse.Namespace) -> int:
             thrusts = mission.step(t, step_dt, last_depth, heading, yaw_rate)
             cmds = [thr.command(a.esc, float(x)) for x in thrusts]
             vesc.send(cmds)
+            erpm = [float(vesc.erpm.get(cid, math.nan)) for _, cid, _, _ in THRUSTERS]
+            for name in health.update(t, step_dt, [float(x) for x in thrusts], erpm):
+                print(f"t={t:6.1f}s WARNING thruster {name}: its ESC reports a stopped rotor while commanded; "
+                      "flying on the others", flush=True)
             if t > p.timeout and not mission.done:
                 mission.fail(t, f"timeout {p.timeout:g} s")
             fx, fy, fz, mz = mission.force
@@ -204,7 +210,9 @@ def run(a: argparse.Namespace) -> int:
                     surge_speed=mission.surge_obs.v, fx=fx, fz=fz, mz=mz,
                     phase=float(mission.plan.index(mission.phase)) if mission.phases else -1.0,
                     **{f"cmd{i}": c for i, c in enumerate(cmds)},
-                    **{f"thrust{i}": float(x) for i, x in enumerate(thrusts)})
+                    depth_ok=float(depth_ok),
+                    **{f"thrust{i}": float(x) for i, x in enumerate(thrusts)},
+                    **{f"erpm{i}": e for i, e in enumerate(erpm)})
             if not a.quiet and t >= next_status:
                 next_status = (math.floor(t / a.status_every) + 1) * a.status_every
                 stale = f"  (no sonar frame for {stale_age:.1f} s)" if stale_age > 1.0 else ""
@@ -224,7 +232,7 @@ def run(a: argparse.Namespace) -> int:
             "frames_received": sonar.received, "frames_lost": sonar.lost, "sonar_replies": sonar.replies,
             "modbus_errors": sensors.errors, "can_frames_sent": vesc.sent, "esc_status_frames": vesc.status_frames,
             "esc_erpm_last": {str(k): v for k, v in sorted(vesc.erpm.items())}, "esc_command": a.esc,
-            "dbc": str(a.dbc) if vesc.db is not None else None}
+            "dbc": str(a.dbc) if vesc.db is not None else None, "thruster_faults": health.faults}
     summary = write_outputs(a.out, p, mission, log.columns, frames_log.columns, info, plots=not a.no_plots,
                             thruster_names=[n for n, _, _, _ in THRUSTERS])
     print(summary["text"], flush=True)

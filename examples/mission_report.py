@@ -113,7 +113,11 @@ def summarize(p: Any, mission: Any, cols: dict[str, list[float]], frames: dict[s
     out["thrusters"] = {"command": info.get("esc_command"),
                         "max_abs_command": [_r(float(np.max(np.abs(c))) if c.size else None, 4) for c in cmds],
                         "max_abs_thrust_n": [_r(float(np.max(np.abs(c))) if c.size else None, 2) for c in thrusts]}
-    out["timing"] = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in info.items()}
+    out["thrusters"]["faults"] = info.get("thruster_faults", [])
+    ok = np.asarray(cols.get("depth_ok", []), float)
+    out["depth"]["invalid_readings"] = int(np.sum(ok < 0.5)) if ok.size else 0
+    out["timing"] = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in info.items()
+                     if k != "thruster_faults"}
     out["control_ticks"] = int(len(t))
     return out
 
@@ -144,6 +148,12 @@ def text(summary: dict[str, Any]) -> str:
         lines.append(f"target range in the hold: {h['range_m']['mean']} m (std {h['range_m']['std']}, requested "
                      f"{so['hold_range_m']} m), final {h['final_range_m']} m, nearest return {h['near_edge_m']} m, "
                      f"{h['detections']}/{h['frames']} frames with the target")
+    for f in s["thrusters"].get("faults", []):
+        lines.append(f"thruster {f['thruster']} (VESC {f['controller']}) reported stopped while commanded "
+                     f"from t = {f['t_s']} s")
+    if s["depth"].get("invalid_readings"):
+        lines.append(f"depth sensor: {s['depth']['invalid_readings']} control ticks without a valid reading "
+                     "(flown on the last good one)")
     return "\n".join(lines)
 
 

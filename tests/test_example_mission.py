@@ -233,6 +233,8 @@ def test_the_demo_completes_the_mission_and_stops_the_bridge_cleanly(run):
     status = [ln for ln in run["log"].splitlines() if ln.startswith("t=")]
     assert 0.8 * s["duration_s"] - 2 <= len(status) <= s["duration_s"] + 2, len(status)
     assert run["obs"].error is None and len(run["obs"].rows) > 20
+    # no fault injected: the stack's ESC health check flags nothing and every depth reading was valid
+    assert s["thrusters"]["faults"] == [] and s["depth"]["invalid_readings"] == 0
     print(f"\nend to end: {run['wall']:.1f} s wall for {s['duration_s']} s of simulation, "
           f"{len(run['obs'].rows)} frames seen by the observer")
 
