@@ -4,10 +4,17 @@ Each client of a vendor sonar sets its own ping configuration (range, rate,
 beams ...). :class:`ClientPinger` holds one entry per pinging client and one
 scheduler event, present only while some entry pings (a protocol nobody uses
 costs nothing). At each tick the due entries are grouped by their render
-key (profile + settings): one render per group serves every client in it.
-One batch renders at a time; a tick that finds the previous batch still
-rendering skips its due pings (counted in ``busy_skips``) instead of queueing
-them, so a slow renderer lowers the frame rate and never builds a backlog.
+key (profile + settings): one render per group serves every client in it,
+and a client with the same settings whose ping falls due within half its
+period comes along (its frame is a little early; its rate is kept), so any
+number of identical clients cost one render per period, whatever their phase.
+
+One batch renders at a time. Pings that fall due meanwhile wait, one per
+client (no queue): when the batch ends the pinger takes every entry due by
+then, so each waiting client is served next, in turn, and a client busy
+with costly settings cannot starve another. A slow renderer thus lowers
+every client's rate alike and never builds a backlog; whole periods a client
+lost that way are counted in ``busy_skips``.
 """
 
 from __future__ import annotations
@@ -94,19 +101,13 @@ class ClientPinger:
             await asyncio.gather(*self._tasks, return_exceptions=True)
 
     def _on_tick(self, t: float) -> Awaitable[Any] | None:
-        due = [e for e in self.entries.values() if e.next_due <= t + 1e-9]
-        if not due:
-            return None
-        for e in due:
-            e.next_due = e.next_due + e.period if e.next_due + e.period > t else t + e.period
         if self._busy:
-            self.busy_skips += len(due)
+            return None   # due pings wait for the batch in flight, which takes them when it ends
+        batch = self._take_due(t)
+        if not batch:
             return None
-        groups: dict[Hashable, list[PingEntry]] = {}
-        for e in due:
-            groups.setdefault(e.key, []).append(e)
         self._busy = True
-        coro = self._render_groups(list(groups.values()))
+        coro = self._render_batches(batch)
         defer = getattr(self.ctx, "defer", None)
         if defer is not None:
             return defer(coro)
@@ -115,21 +116,53 @@ class ClientPinger:
         task.add_done_callback(self._tasks.discard)
         return None
 
-    async def _render_groups(self, groups: list[list[PingEntry]]) -> None:
+    def _take_due(self, t: float) -> list[list[PingEntry]]:
+        """The entries due at ``t`` [s], grouped by render key, with the entries of the same key due within
+        half their period; each one's next ping scheduled (whole periods already missed are skipped and
+        counted, never caught up in a burst)."""
+        due = [e for e in self.entries.values() if e.next_due <= t + 1e-9]
+        if not due:
+            return []
+        groups: dict[Hashable, list[PingEntry]] = {}
+        for e in due:
+            nxt = e.next_due + e.period
+            if nxt <= t:
+                self.busy_skips += int((t - e.next_due) / e.period)
+                nxt = t + e.period
+            e.next_due = nxt
+            groups.setdefault(e.key, []).append(e)
+        # same settings, due soon: served now and put on the group's schedule, so identical clients
+        # converge on one render per period (the early frame is at most half a period early; the
+        # interval to the next one is a whole period, so the rate holds)
+        taken = {id(e) for e in due}
+        for e in self.entries.values():
+            g = groups.get(e.key)
+            if g is not None and id(e) not in taken and e.next_due - t <= 0.5 * e.period:
+                same = [x.next_due for x in g if x.period == e.period]
+                e.next_due = min(same) if same else t + e.period
+                g.append(e)
+        return list(groups.values())
+
+    async def _render_batches(self, batch: list[list[PingEntry]]) -> None:
         try:
-            for group in groups:
-                head = group[0]
-                index = self.frame_index
-                self.frame_index += 1
-                try:
-                    r = await self.ctx.render(self.mount, head.profile, head.settings, frame_index=index)
-                except RenderFailed as exc:
-                    self.failures += 1
-                    log.warning("%s: ping %d lost: %s", self.name, index, exc)
-                    continue
-                self.renders += 1
-                live = [e for e in group if self.entries.get(e.cid) is e]
-                if live:
-                    self.on_frame(live, r, index)
+            while batch:
+                for group in batch:
+                    await self._render_group(group)
+                batch = self._take_due(self.ctx.now())   # whatever fell due meanwhile, every client once
         finally:
             self._busy = False
+
+    async def _render_group(self, group: list[PingEntry]) -> None:
+        head = group[0]
+        index = self.frame_index
+        self.frame_index += 1
+        try:
+            r = await self.ctx.render(self.mount, head.profile, head.settings, frame_index=index)
+        except RenderFailed as exc:
+            self.failures += 1
+            log.warning("%s: ping %d lost: %s", self.name, index, exc)
+            return
+        self.renders += 1
+        live = [e for e in group if self.entries.get(e.cid) is e]
+        if live:
+            self.on_frame(live, r, index)

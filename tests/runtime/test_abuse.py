@@ -41,10 +41,6 @@ CLIENT_LIMITS = {"ddf-stream": 16, "oculus": 8, "aris": 4, "socketcand": 8, "mod
                  "modbus-witmotion": 32}
 HOLD = 40              # connections opened at once per server: more than any limit
 SHARED: dict = {}      # figures of the big abuse test, for the test that follows it
-PINGER = ("hilsim/devices/sonar_pinger.py: clients of the same sonar compete for one render at a time; a "
-          "client whose ping falls due while another's render is in flight is skipped (busy_skips), and "
-          "identical settings share a render only when due on the same tick, so other clients (abusive "
-          "or not) firing at another phase can starve a well-behaved one")
 FLOOD = 300            # connects per server, each reset at once
 RESETS = 20            # connects per server that send half a message, then reset
 
@@ -244,7 +240,6 @@ def test_modbus_request_flood_from_many_clients_leaves_a_100hz_poller_answered(b
     assert "over 1000 requests/s: throttled" in bridge.log()
 
 
-@pytest.mark.xfail(reason=PINGER)
 def test_oculus_and_aris_clients_kept_their_rate_under_abuse():
     """The never-reading Oculus and ARIS clients of the abuse above fire the well-behaved
     clients' very settings (at another moment): the sonar should serve everyone."""
@@ -254,7 +249,6 @@ def test_oculus_and_aris_clients_kept_their_rate_under_abuse():
         assert SHARED["during"][name] >= 0.5 * SHARED["before"][name], (name, SHARED)
 
 
-@pytest.mark.xfail(reason=PINGER)
 def test_identical_sonar_clients_are_all_served(bridge):
     """Three well-behaved clients with identical settings, started a fraction of a period apart,
     on Oculus and on ARIS: each should get its ping rate (one render can serve them all)."""
