@@ -17,7 +17,15 @@ decides what bytes mean; this module only moves them. Guarantees:
   credit) is read more slowly: the kernel's buffers fill and TCP pushes back on it.
   An async ``on_data`` paces itself (Modbus: its request budget);
 * whatever a client sends or however it disconnects (mid-message, reset,
-  half-open), the server keeps serving the others.
+  half-open), the server keeps serving the others;
+* no slot is held forever by a client that is gone or does nothing: TCP
+  keep-alive probes (after ``keepalive`` [s] of silence, 3 probes 10 s apart)
+  close connections whose peer vanished without FIN or RST (a half-open
+  connection); a client that sent nothing and was sent nothing for
+  ``idle_timeout`` [s] is dropped (for request/response protocols; off for
+  streams whose clients only listen); a client that has not taken any of what
+  it was sent for ``stall_timeout`` [s] (it never reads) is dropped. Each drop
+  is logged with its reason.
 """
 
 from __future__ import annotations
@@ -46,6 +54,8 @@ class LinkStats:
     messages_dropped: int = 0
     bytes_received: int = 0
     throttled: int = 0          # clients read more slowly for the CPU their input took
+    idle_drops: int = 0         # clients dropped after idle_timeout without traffic either way
+    stall_drops: int = 0        # clients dropped after stall_timeout without reading
 
 
 @dataclass(eq=False)
@@ -63,6 +73,8 @@ class Client:
     cpu_t: float = 0.0       # [s] monotonic time of the last refill
     throttled: bool = False
     read_size: int = 4096    # [bytes] adapted to what its input costs
+    last_active: float = 0.0           # [s] monotonic: the last byte received or message taken
+    writing_since: float | None = None  # [s] monotonic: start of the write now waiting on the peer
     state: dict = field(default_factory=dict)  # the device's per-client state (codec, settings)
 
     def __repr__(self) -> str:
@@ -72,6 +84,18 @@ class Client:
 OnConnect = Callable[[Client], Awaitable[None] | None]
 OnData = Callable[[Client, bytes], Awaitable[None] | None]
 OnDisconnect = Callable[[Client], Awaitable[None] | None]
+
+
+def _set_keepalive(sock: socket.socket, idle: float) -> None:
+    """TCP keep-alive: probe after ``idle`` [s] of silence, 3 probes 10 s apart (Linux options where
+    the platform has them): a peer that vanished is noticed in about ``idle`` + 30 s."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        for opt, value in (("TCP_KEEPIDLE", max(1, int(idle))), ("TCP_KEEPINTVL", 10), ("TCP_KEEPCNT", 3)):
+            if hasattr(socket, opt):
+                sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, opt), value)
+    except OSError:  # noqa: PERF203 - a socket that refuses the options still serves
+        pass
 
 
 async def _maybe_await(x: Awaitable[None] | None) -> None:
@@ -86,7 +110,8 @@ class TcpServer:
 
     def __init__(self, name: str, host: str = "127.0.0.1", port: int = 0, *,
                  max_clients: int = 32, queue_len: int = 4, write_buffer: int = 256 * 1024,
-                 read_size: int = 4096, idle_timeout: float | None = None, sndbuf: int | None = None,
+                 read_size: int = 4096, idle_timeout: float | None = None,
+                 stall_timeout: float | None = 30.0, keepalive: float | None = 30.0, sndbuf: int | None = None,
                  cpu_share: float | None = 0.25, cpu_burst: float = 0.05,
                  on_connect: OnConnect | None = None, on_data: OnData | None = None,
                  on_disconnect: OnDisconnect | None = None) -> None:
@@ -97,7 +122,9 @@ class TcpServer:
         self.queue_len = queue_len
         self.write_buffer = write_buffer
         self.read_size = read_size
-        self.idle_timeout = idle_timeout
+        self.idle_timeout = idle_timeout if idle_timeout else None
+        self.stall_timeout = stall_timeout if stall_timeout else None
+        self.keepalive = keepalive if keepalive else None
         self.sndbuf = sndbuf
         self.cpu_share = cpu_share
         self.cpu_burst = cpu_burst
@@ -110,6 +137,7 @@ class TcpServer:
         self.stats = LinkStats()
         self._server: asyncio.base_events.Server | None = None
         self._tasks: set[asyncio.Task[None]] = set()
+        self._watchdog: asyncio.Task[None] | None = None
 
     @property
     def address(self) -> str:
@@ -121,6 +149,9 @@ class TcpServer:
         sock = self._server.sockets[0]
         self.host, self.port = sock.getsockname()[:2]
         log.info("%s listening on %s", self.name, self.address)
+        limits = [x for x in (self.idle_timeout, self.stall_timeout) if x]
+        if limits:
+            self._watchdog = self._spawn(self._watch(min(1.0, min(limits) / 4)))
         return self.host, self.port
 
     async def close(self) -> None:
@@ -196,8 +227,11 @@ class TcpServer:
         if self.sndbuf is not None and sock is not None:
             # bound what the kernel holds for a client that does not read, too
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.sndbuf)
+        if self.keepalive is not None and sock is not None:
+            _set_keepalive(sock, self.keepalive)
+        now = time.monotonic()
         c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len),
-                   cpu_credit=self.cpu_burst, cpu_t=time.monotonic(), read_size=self.read_size)
+                   cpu_credit=self.cpu_burst, cpu_t=now, read_size=self.read_size, last_active=now)
         self.clients[c.id] = c
         self.stats.accepted += 1
         self.stats.connected = len(self.clients)
@@ -207,12 +241,10 @@ class TcpServer:
             if self.on_connect is not None:
                 await _maybe_await(self.on_connect(c))
             while not c.closed:
-                if self.idle_timeout is not None:
-                    data = await asyncio.wait_for(reader.read(c.read_size), self.idle_timeout)
-                else:
-                    data = await reader.read(c.read_size)
+                data = await reader.read(c.read_size)
                 if not data:
                     break
+                c.last_active = time.monotonic()
                 self.stats.bytes_received += len(data)
                 if self.on_data is not None:
                     # CPU time of this thread, not wall time: on a loaded machine the time the OS
@@ -233,8 +265,6 @@ class TcpServer:
                 # let the others in before this client's next chunk (asyncio hands over up to
                 # 256 KiB per read, which read() would otherwise return chunk after chunk)
                 await asyncio.sleep(0)
-        except asyncio.TimeoutError:
-            log.info("%s: client %s idle for %.0f s, dropped", self.name, peer_s, self.idle_timeout)
         except (ConnectionError, OSError):
             pass
         except asyncio.CancelledError:
@@ -250,6 +280,25 @@ class TcpServer:
                     await _maybe_await(self.on_disconnect(c))
                 except Exception:  # noqa: BLE001
                     log.exception("%s: on_disconnect failed", self.name)
+
+    async def _watch(self, every: float) -> None:
+        """Drop clients idle for ``idle_timeout`` or not reading for ``stall_timeout``."""
+        while True:
+            await asyncio.sleep(every)
+            now = time.monotonic()
+            for c in list(self.clients.values()):
+                if self.stall_timeout is not None and c.writing_since is not None \
+                        and now - c.writing_since > self.stall_timeout:
+                    self.stats.stall_drops += 1
+                    log.warning("%s: client %s has taken nothing it was sent for %.0f s (not reading): dropped",
+                                self.name, c.peer, now - c.writing_since)
+                    self._drop(c)
+                elif self.idle_timeout is not None and c.writing_since is None and c.queue.empty() \
+                        and now - c.last_active > self.idle_timeout:
+                    self.stats.idle_drops += 1
+                    log.info("%s: client %s sent nothing and was sent nothing for %.0f s (idle): dropped",
+                             self.name, c.peer, now - c.last_active)
+                    self._drop(c)
 
     def _log_refusal(self, peer: str) -> None:
         now = time.monotonic()
@@ -282,8 +331,11 @@ class TcpServer:
         try:
             while not c.closed:
                 msg = await c.queue.get()
+                c.writing_since = time.monotonic()
                 c.writer.write(msg)
                 await c.writer.drain()
+                c.last_active = time.monotonic()
+                c.writing_since = None
                 c.sent += 1
                 self.stats.messages_sent += 1
                 self.stats.bytes_sent += len(msg)

@@ -156,3 +156,69 @@ def test_a_device_error_on_one_client_does_not_stop_the_server():
         await srv.close()
 
     run(main())
+
+
+def test_idle_and_never_reading_clients_are_dropped_and_active_ones_kept(caplog):
+    """idle_timeout: nothing either way -> dropped; a client that talks, or one that only listens to
+    a stream it reads, stays. stall_timeout: a client that takes nothing it is sent -> dropped."""
+    async def main():
+        srv = TcpServer("t", idle_timeout=1.0, stall_timeout=1.0, write_buffer=16 * 1024, sndbuf=4096,
+                        on_data=lambda c, d: None)
+        host, port = await srv.start()
+        idle = socket.create_connection((host, port))
+        talker_r, talker_w = await asyncio.open_connection(host, port)
+        listener_r, _ = await asyncio.open_connection(host, port)
+        deaf = socket.socket()
+        deaf.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        deaf.connect((host, port))
+        while srv.stats.connected < 4:
+            await asyncio.sleep(0.01)
+        ports = {"idle": idle.getsockname()[1], "deaf": deaf.getsockname()[1],
+                 "talker": talker_w.get_extra_info("sockname")[1]}
+        quiet = {f":{ports['idle']}", f":{ports['talker']}"}   # sent nothing by the server
+        deadline = asyncio.get_running_loop().time() + 3.0
+        i = 0
+        while asyncio.get_running_loop().time() < deadline:
+            talker_w.write(b"x")                       # the talker sends, the listener reads a stream
+            srv.broadcast(message(i), only=lambda c: not c.peer.endswith(tuple(quiet)))
+            i += 1
+            try:
+                while True:
+                    await asyncio.wait_for(read_message(listener_r), 0.01)
+            except asyncio.TimeoutError:
+                pass
+            await asyncio.sleep(0.1)
+        left = sorted(int(c.peer.rsplit(":", 1)[1]) for c in srv.clients.values())
+        assert ports["idle"] not in left and ports["deaf"] not in left, left
+        assert srv.stats.connected == 2 and srv.stats.idle_drops == 1 and srv.stats.stall_drops == 1
+        # the dropped idle client sees the connection closed
+        idle.settimeout(2)
+        assert idle.recv(10) == b""
+        for s in (idle, deaf):
+            s.close()
+        talker_w.close()
+        await srv.close()
+
+    with caplog.at_level("INFO", logger="hilsim.links.tcp"):
+        run(main())
+    text = caplog.text
+    assert "(idle): dropped" in text and "(not reading): dropped" in text
+
+
+def test_accepted_connections_use_tcp_keepalive():
+    """A peer gone without FIN or RST (half-open) is found by keep-alive probes, not left forever."""
+    async def main():
+        srv = TcpServer("t", keepalive=20.0)
+        host, port = await srv.start()
+        _, w = await asyncio.open_connection(host, port)
+        while srv.stats.connected < 1:
+            await asyncio.sleep(0.01)
+        sock = next(iter(srv.clients.values())).writer.get_extra_info("socket")
+        assert sock.getsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE) == 1
+        if hasattr(socket, "TCP_KEEPIDLE"):
+            assert sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE) == 20
+            assert sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT) == 3
+        w.close()
+        await srv.close()
+
+    run(main())
