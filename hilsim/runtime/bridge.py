@@ -76,7 +76,8 @@ class Bridge:
         else:
             clock = RealTimeClock(async_margin=0.0)
         self.time_scale = 1.0 if fast else float(time_scale)
-        self.scheduler = Scheduler(clock)
+        # late = more than half a period behind (asyncio's timer jitter of about a millisecond is not)
+        self.scheduler = Scheduler(clock, late_fraction=0.5)
         self.vehicle = self._build_vehicle(physics_rate)
         self.worker = RenderWorker(self.scenario.path, self.seed, timeout=worker_timeout)
         self.devices: list[Device] = []
@@ -298,8 +299,9 @@ class Bridge:
             shown = [f"{k} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
                      for k, v in ds.items() if v and k not in ("device_id",)]
             parts.append(f"{name}({', '.join(shown)})" if shown else name)
-        log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d | %s", st["time_s"], st["depth_m"],
-                 st["heading_deg"], st["late_ticks"], " ".join(parts) or "no devices")
+        log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d, skipped %d | %s", st["time_s"],
+                 st["depth_m"], st["heading_deg"], st["late_ticks"], st["skipped_ticks"],
+                 " ".join(parts) or "no devices")
 
 
 def path_inside(base: Path, rel: str | os.PathLike[str], what: str = "path", hint: str = "") -> Path:

@@ -80,11 +80,17 @@ class Scheduler:
     """Runs periodic events against ``clock`` (default a :class:`VirtualClock`).
 
     record_lateness: keep every tick's lateness in ``EventStats.lateness``.
+    late_fraction: if set, an event added without a tolerance counts a tick as late when it
+    runs more than this fraction of its period after its deadline (the bridge uses 0.5: on
+    an asyncio loop a millisecond of timer jitter is normal and harmless; half a period is
+    not); if None, the tolerance is min(1 ms, period / 4).
     """
 
-    def __init__(self, clock: Clock | None = None, record_lateness: bool = False):
+    def __init__(self, clock: Clock | None = None, record_lateness: bool = False,
+                 late_fraction: float | None = None):
         self.clock = clock if clock is not None else VirtualClock()
         self.record_lateness = record_lateness
+        self.late_fraction = late_fraction
         self.events: list[PeriodicEvent] = []
         self._heap: list[tuple[float, int, int, PeriodicEvent]] = []
         self._seq = 0
@@ -100,7 +106,12 @@ class Scheduler:
             raise ValueError(f"event {name!r}: period must be a positive number of seconds, got {period}")
         # the default 1 ms is wall time: on a clock running k times faster it is k ms of sim time
         scale = float(getattr(self.clock, "scale", 1.0))
-        tol = min(1e-3 * scale, period / 4) if tolerance is None else float(tolerance)
+        if tolerance is not None:
+            tol = float(tolerance)
+        elif self.late_fraction is not None:
+            tol = self.late_fraction * period
+        else:
+            tol = min(1e-3 * scale, period / 4)
         ev = PeriodicEvent(name, float(period), callback, float(offset), int(priority), tol)
         if self.record_lateness:
             ev.stats.lateness = []

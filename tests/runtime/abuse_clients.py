@@ -51,17 +51,17 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-STATUS_RE = re.compile(r"t=([0-9.]+)s depth .*?\| late ticks (\d+) \| (.*)$")
+STATUS_RE = re.compile(r"t=([0-9.]+)s depth .*?\| late ticks (\d+), skipped (\d+) \| (.*)$")
 DEVICE_RE = re.compile(r"(\w+)(?:\(([^)]*)\))?")
 
 
 def parse_status(line: str) -> dict[str, Any] | None:
-    """A bridge status line -> {"t": s, "late_ticks": n, "devices": {name: {counter: value}}}."""
+    """A bridge status line -> {"t": s, "late_ticks": n, "skipped_ticks": n, "devices": {name: {counter: value}}}."""
     m = STATUS_RE.search(line)
     if m is None:
         return None
     devices: dict[str, dict[str, float]] = {}
-    for name, body in DEVICE_RE.findall(m.group(3)):
+    for name, body in DEVICE_RE.findall(m.group(4)):
         counters: dict[str, float] = {}
         for part in filter(None, body.split(", ")):
             k, _, v = part.rpartition(" ")
@@ -70,7 +70,8 @@ def parse_status(line: str) -> dict[str, Any] | None:
             except ValueError:
                 pass
         devices[name] = counters
-    return {"t": float(m.group(1)), "late_ticks": int(m.group(2)), "devices": devices}
+    return {"t": float(m.group(1)), "late_ticks": int(m.group(2)), "skipped_ticks": int(m.group(3)),
+            "devices": devices}
 
 
 def last_status(log_text: str) -> dict[str, Any] | None:

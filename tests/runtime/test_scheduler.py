@@ -93,6 +93,28 @@ def test_a_late_tick_runs_once_and_the_grid_is_kept() -> None:
     assert ev.stats.max_lateness == pytest.approx(0.005)
 
 
+def test_late_fraction_counts_lateness_against_the_period() -> None:
+    """late_fraction 0.5: a 200 Hz tick 2 ms behind is on time (timer jitter), 3 ms behind is late
+    (the default min(1 ms, period / 4) counts both); an explicit tolerance still wins."""
+    def run(sched: Scheduler) -> int:
+        clock = sched.clock
+        overrun = {0.0: 0.007, 0.005: 0.006}   # the tick at 0.005 runs at 0.007, the one at 0.010 at 0.013
+
+        def cb(t: float) -> None:
+            clock.t += overrun.get(round(t, 9), 0.0)
+
+        ev = sched.add("physics", 0.005, cb)
+        sched.run(until=0.05)
+        assert ev.stats.skipped == 0
+        return ev.stats.late
+
+    assert run(Scheduler(ManualClock(), late_fraction=0.5)) == 1
+    assert run(Scheduler(ManualClock())) == 2
+    sched = Scheduler(ManualClock(), late_fraction=0.5)
+    assert sched.add("fixed", 0.005, lambda t: None, tolerance=0.0005).tolerance == 0.0005
+    assert sched.add("half", 0.005, lambda t: None).tolerance == pytest.approx(0.0025)
+
+
 def test_awaitable_callbacks_need_run_async() -> None:
     async def cb(t: float) -> None:
         return None
