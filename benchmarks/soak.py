@@ -25,10 +25,9 @@ Each cycle: the abuse for 60 % of it, then quiet; at the end of the quiet part o
 sampled: the bridge's RSS and open file descriptors (so rows compare like with like),
 the CPU the bridge's main process used (its event loop and the physics; the render
 worker is a child process), what every client got, lost replies, the bridge's drop
-counters and late ticks (from its status line; ticks skipped when the loop fell far
-behind are not in that line). Warm-up is the first full turn of abuse kinds (or 20 % of the cycles, if
-more); after it the verdict fits RSS [MB/min] and descriptors over the rows and counts
-lost replies. Goal: flat memory and descriptors after warm-up, zero lost replies to
+counters, late ticks and skipped ticks (from its status line). Warm-up is the first full
+turn of abuse kinds (or 20 % of the cycles, if more); after it the verdict fits RSS
+[MB/min] and descriptors over the rows and counts lost replies. Goal: flat memory and descriptors after warm-up, zero lost replies to
 well-behaved clients.
 """
 
@@ -123,11 +122,11 @@ def main(minutes: float = 10.0, cycle: float | None = None, out: Callable[[str],
         out(f"soak: {minutes:g} min, {n_cycles} cycles of {cycle:g} s (abuse {0.6 * cycle:.1f} s, then quiet), "
             f"warm-up {warmup} cycles; bridge pid {bridge.proc.pid}, log {bridge.log_path}")
         header = (f"{'t[s]':>6} {'RSS[MB]':>7} {'fds':>4} {'cpu%':>4} " + " ".join(f"{SHORT[c.name]:>8}" for c in clients)
-                  + f" {'lost':>4} {'drops':>7} {'late':>7}  abuse")
+                  + f" {'lost':>4} {'drops':>7} {'late':>7} {'skipped':>7}  abuse")
         out(header)
         t_start = time.monotonic()
         prev = {c.name: 0 for c in clients}
-        prev_drops = prev_late = 0.0
+        prev_drops = prev_late = prev_skip = 0.0
         prev_cpu, prev_t = ac.cpu_seconds(bridge.proc.pid), time.monotonic()
         t_cycle = t_start
         for i in range(n_cycles):
@@ -151,19 +150,20 @@ def main(minutes: float = 10.0, cycle: float | None = None, out: Callable[[str],
             rss, fds = ac.proc_stats(bridge.proc.pid)
             cpu, now = ac.cpu_seconds(bridge.proc.pid), time.monotonic()
             cpu_pct, prev_cpu, prev_t = 100.0 * (cpu - prev_cpu) / (now - prev_t), cpu, now
-            st = ac.last_status(bridge.log()) or {"devices": {}, "late_ticks": 0}
+            st = ac.last_status(bridge.log()) or {"devices": {}, "late_ticks": 0, "skipped_ticks": 0}
             drops = sum(v for d in st["devices"].values() for k, v in d.items() if k in DROP_COUNTERS)
             got = {c.name: c.stats.received for c in clients}
             lost = sum(c.stats.lost for c in clients) + clients[0].stats.gaps
             row = {"t": round(time.monotonic() - t_start, 1), "rss_mb": round(rss, 1), "fds": fds,
                    "bridge_cpu_pct": round(cpu_pct),
                    "served": {k: got[k] - prev[k] for k in got}, "lost": lost, "drops": drops - prev_drops,
-                   "late_ticks": st["late_ticks"] - prev_late, "abuse": what, "warmup": i < warmup}
+                   "late_ticks": st["late_ticks"] - prev_late, "skipped_ticks": st["skipped_ticks"] - prev_skip,
+                   "abuse": what, "warmup": i < warmup}
             rows.append(row)
-            prev, prev_drops, prev_late = got, drops, st["late_ticks"]
+            prev, prev_drops, prev_late, prev_skip = got, drops, st["late_ticks"], st["skipped_ticks"]
             detail = ", ".join(f"{k} {v}" for k, v in what.items() if k != "kind")
             out(f"{row['t']:>6.0f} {rss:>7.1f} {fds:>4} {cpu_pct:>4.0f} " + " ".join(f"{row['served'][c.name]:>8}" for c in clients)
-                + f" {lost:>4} {row['drops']:>7.0f} {row['late_ticks']:>7.0f}  {kind}{' (' + detail + ')' if detail else ''}"
+                + f" {lost:>4} {row['drops']:>7.0f} {row['late_ticks']:>7.0f} {row['skipped_ticks']:>7.0f}  {kind}{' (' + detail + ')' if detail else ''}"
                 + ("  [warm-up]" if row["warmup"] else ""))
     finally:
         for c in clients:
