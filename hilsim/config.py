@@ -61,6 +61,60 @@ class ConfigError(ValueError):
         super().__init__(f"{where}: {message}")
 
 
+_HEADER = re.compile(r"^\s*(\[\[?)\s*([^\[\]#]+?)\s*\]\]?\s*(?:#.*)?$")
+_NAME_LINE = re.compile(r"""^\s*name\s*=\s*(?:"([^"]*)"|'([^']*)')""")
+
+
+@dataclass(frozen=True)
+class _Block:
+    """Lines ``start..end`` (0-based, end excluded) of one table; ``header`` is the 1-based line
+    of its ``[...]`` (0 for the top of the file); ``path[i]`` holds the names part i may take."""
+
+    path: tuple[frozenset[str], ...]
+    header: int
+    start: int
+    end: int
+
+
+def _header_keys(name: str) -> list[str]:
+    return [k.strip("\"'") for k in re.findall(r'"[^"]*"|\'[^\']*\'|[^.\s]+', name)]
+
+
+def _blocks(lines: list[str]) -> list[_Block]:
+    """The tables of a TOML text, each with the dotted names that reach it."""
+    heads: list[tuple[int, bool, list[str]]] = []  # (0-based line, array?, keys)
+    for i, ln in enumerate(lines):
+        m = _HEADER.match(ln)
+        if m:
+            heads.append((i, m.group(1) == "[[", _header_keys(m.group(2))))
+    spans = [(0, heads[0][0] if heads else len(lines))]
+    spans += [(h[0] + 1, heads[k + 1][0] if k + 1 < len(heads) else len(lines)) for k, h in enumerate(heads)]
+    out = [_Block((), 0, *spans[0])]
+    arrays: dict[tuple[str, ...], frozenset[str]] = {}  # array of tables -> labels of its current entry
+    counts: dict[tuple[str, ...], int] = {}
+    for (i, is_array, keys), (start, end) in zip(heads, spans[1:]):
+        path: list[frozenset[str]] = []
+        for j, k in enumerate(keys):
+            path.append(frozenset((k,)))
+            prefix = tuple(keys[:j + 1])
+            if prefix in arrays and not (is_array and j == len(keys) - 1):
+                path.append(arrays[prefix])  # a sub-table of the array's current entry
+        if is_array:
+            key = tuple(keys)
+            index = counts.get(key, 0)
+            counts[key] = index + 1
+            labels = {str(index)}
+            for ln in lines[start:end]:
+                m = _NAME_LINE.match(ln)
+                if m:
+                    labels.add(m.group(1) if m.group(1) is not None else m.group(2))
+                    break
+            arrays[key] = frozenset(labels)
+            path.append(arrays[key])
+        out.append(_Block(tuple(path), i + 1, start, end))
+    return out
+
+
 @dataclass(frozen=True)
 class Doc:
     """A parsed TOML file with what is needed to point at its lines."""
@@ -70,7 +124,36 @@ class Doc:
     data: dict[str, Any]
 
     def line_of(self, dotted: str) -> int | None:
-        """Best-effort line number of a dotted key (``objects.3.material``)."""
+        """Best-effort line number of a dotted key (``objects.3.material``, ``devices.depth.path``).
+
+        An entry of an array of tables (``[[devices]]``) is named by its index or by its
+        ``name``; the key is looked for inside the table the earlier parts name, and a key
+        that table does not write (a default) points at the table's header."""
+        lines = self.text.splitlines()
+        parts = [p for p in dotted.split(".") if p]
+        if not parts:
+            return None
+        best: _Block | None = None
+        for block in _blocks(lines):
+            n = len(block.path)
+            if n <= len(parts) and all(parts[i] in block.path[i] for i in range(n)):
+                if best is None or n > len(best.path):
+                    best = block
+        if best is not None:
+            rest = parts[len(best.path):]
+            if not rest:
+                return best.header
+            pat = re.compile(r"^\s*(?:" + re.escape(rest[0]) + r"|\"" + re.escape(rest[0]) + r"\"|'"
+                             + re.escape(rest[0]) + r"')\s*[=.]")
+            for i in range(best.start, best.end):
+                if pat.match(lines[i]):
+                    return i + 1
+            if best.path:  # a key the table does not write: the table itself
+                return best.header
+        return self._line_of_loosely(dotted)
+
+    def _line_of_loosely(self, dotted: str) -> int | None:
+        """The key's last part, preferably inside the section the earlier parts name."""
         parts = [p for p in dotted.split(".") if not p.isdigit()]
         if not parts:
             return None
@@ -235,16 +318,28 @@ def vector(doc: Doc, table: Mapping[str, Any], key: str, n: int, where: str = ""
         raise doc.error(dotted, str(exc)) from None
 
 
+def resolve_inside(base: Path, rel: str | Path) -> Path | None:
+    """``base / rel`` with ``..`` and symlinks resolved, or None when ``rel`` is absolute or the
+    result is not inside ``base`` (the file need not exist)."""
+    p = Path(rel)
+    if p.is_absolute():
+        return None
+    full = (base / p).resolve()
+    root = base.resolve()
+    if full != root and root not in full.parents:
+        return None
+    return full
+
+
 def safe_join(base: Path, rel: str, doc: Doc, key: str) -> Path:
     """Resolve ``rel`` inside ``base``; refuse absolute paths and escapes (``..``, symlinks)."""
     if not isinstance(rel, str) or not rel:
         raise doc.error(key, f"expected a relative file path, got {rel!r}")
-    p = Path(rel)
-    if p.is_absolute():
+    if Path(rel).is_absolute():
         raise doc.error(key, f"path {rel!r} is absolute; paths must stay inside {base}")
-    full = (base / p).resolve()
+    full = resolve_inside(base, rel)
     root = base.resolve()
-    if full != root and root not in full.parents:
+    if full is None:
         raise doc.error(key, f"path {rel!r} leaves the scenario folder {root}")
     if not full.is_file():
         raise doc.error(key, f"file {rel!r} not found in {root}")

@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from hilsim.config import Doc, resolve_inside
+
 _PKG = Path(__file__).resolve().parent
 DATA_FOLDERS = ("devices", "scenarios", "protocols")
 
@@ -66,14 +68,46 @@ def find_scenario(name_or_path: str | os.PathLike[str] | None) -> Path:
     )
 
 
-def find_profile(kind: str, name: str, base: Path | None = None) -> Path:
+def check_profile_ref(kind: str | None, name: object, base: Path | None = None, *,
+                      doc: Doc | None = None, key: str | None = None) -> str:
+    """Refuse a profile reference that is not a plain name inside the search path.
+
+    A reference is data: ``didson_hf`` or ``sonars/didson_hf``, looked up below ``base`` (the
+    scenario folder) and below the bundled ``devices/``. Absolute references, and references
+    that leave either folder (``..``, a symlink pointing out), are refused: with ``doc`` and
+    ``key`` as the :class:`~hilsim.config.ConfigError` of that file, line and key, else as
+    a ValueError. Returns the file name to look up (``name`` with ``.toml``).
+    """
+    def refused(message: str) -> ValueError:
+        return doc.error(key, message) if doc is not None else ValueError(message)
+
+    what = f"{kind[:-1] if kind.endswith('s') else kind} profile" if kind else "profile"
+    if not isinstance(name, str) or not name.strip():
+        raise refused(f"expected a {what} name such as 'didson_hf', got {name!r}")
+    rel = name if name.endswith(".toml") else name + ".toml"
+    if Path(rel).is_absolute():
+        raise refused(f"{what} {name!r} is absolute; a profile is a name looked up in the scenario "
+                      f"folder, then in {data_path('devices')}")
+    roots = ([(base, "the scenario folder")] if base is not None else []) + [(data_path("devices"), "devices/")]
+    for root, label in roots:
+        for sub in ([rel, f"{kind}/{rel}"] if kind else [rel]):
+            if resolve_inside(root, sub) is None:
+                raise refused(f"{what} {name!r} leaves {label} {root.resolve()}; give the name of a "
+                              "profile in the scenario folder or in devices/")
+    return rel
+
+
+def find_profile(kind: str, name: str, base: Path | None = None, *,
+                 doc: Doc | None = None, key: str | None = None) -> Path:
     """Resolve a device profile reference such as ``sonars/didson_hf``.
 
     ``name`` is looked up relative to ``base`` (a scenario folder, for profiles a
     scenario ships itself) and then in the bundled ``devices/`` folder; ``.toml``
-    is optional. ``kind`` is the sub-folder used when ``name`` has none.
+    is optional. ``kind`` is the sub-folder used when ``name`` has none. A reference
+    that is absolute or leaves those folders is refused (:func:`check_profile_ref`:
+    a ConfigError naming ``doc``'s file, line and ``key`` when given, else a ValueError).
     """
-    rel = name if name.endswith(".toml") else name + ".toml"
+    rel = check_profile_ref(kind, name, base, doc=doc, key=key)
     candidates = []
     if base is not None:
         candidates += [base / rel, base / kind / rel]

@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 
 from hilsim.config import ConfigError, Doc, check_keys, load_toml, number, require, safe_join, vector
+from hilsim.resources import check_profile_ref
 from hilsim.sim.geometry import Pose
 from hilsim.sim.world import Material, Water, World, WorldObject
 
@@ -356,7 +357,9 @@ def _load_vehicle(doc: Doc) -> VehicleSpec | None:
     check_keys(doc, t, _VEHICLE_KEYS, "vehicle")
     xyz = vector(doc, t, "position_m", 3, "vehicle", (0.0, 0.0, 0.0))
     rpy = vector(doc, t, "orientation_deg", 3, "vehicle", (0.0, 0.0, 0.0))
-    return VehicleSpec(str(require(doc, t, "profile", "vehicle")), (xyz[0], xyz[1], xyz[2]),
+    profile = require(doc, t, "profile", "vehicle")
+    check_profile_ref("vehicles", profile, doc.path.parent, doc=doc, key="vehicle.profile")
+    return VehicleSpec(str(profile), (xyz[0], xyz[1], xyz[2]),
                        (math.radians(rpy[0]), math.radians(rpy[1]), math.radians(rpy[2])))
 
 
@@ -375,7 +378,9 @@ def _load_sensors(doc: Doc) -> list[SensorMount]:
             raise doc.error(f"sensors.{name}.kind", f"unknown sensor kind {kind!r}; one of {', '.join(SENSOR_KINDS)}")
         if any(s.name == name for s in out):
             raise doc.error(f"sensors.{name}", f"duplicate sensor name {name!r}")
-        out.append(SensorMount(name, kind, str(require(doc, t, "profile", where)), _pose(doc, t, where)))
+        profile = require(doc, t, "profile", where)
+        check_profile_ref(None, profile, doc.path.parent, doc=doc, key=f"sensors.{name}.profile")
+        out.append(SensorMount(name, kind, str(profile), _pose(doc, t, where)))
     return out
 
 
