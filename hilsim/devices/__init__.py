@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import importlib
 
-from hilsim.devices.base import Device
+from hilsim.devices.base import Device, OptionError
+
+__all__ = ["Device", "OptionError", "REGISTRY", "device_class"]
 
 REGISTRY: dict[str, str] = {
     "ddf-stream": "hilsim.devices.ddf_stream:DdfStreamDevice",

@@ -86,7 +86,7 @@ class ArisDevice(Device):
         self._udp: asyncio.DatagramTransport | None = None
         self._events: list[Any] = []
         self._writer: ArisWriter | None = None
-        self.record_path = ctx.output_path(self.options["record"]) if self.options["record"] else None
+        self.record_path = self.option_output_path("record") if self.options["record"] else None
         self.frames_sent = 0
         self.datagrams_sent = 0
         self.frames_recorded = 0

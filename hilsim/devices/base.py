@@ -114,8 +114,23 @@ class DeviceContext(Protocol):
         by the bridge at shutdown (it must have ``async close()``)."""
 
 
+class OptionError(ValueError):
+    """A device option the device refuses. ``option`` names the key, so the bridge can report the
+    scenario's file, line and ``[devices.<name>.<option>]``; ``message`` says what is wrong
+    (``str()`` puts ``context`` first, e.g. "device 'depth'", for use outside a scenario)."""
+
+    def __init__(self, option: str, message: str, context: str | None = None) -> None:
+        super().__init__(f"{context}: {message}" if context else message)
+        self.option = option
+        self.message = message
+
+
 class Device(ABC):
-    """An emulated device. Subclasses set ``protocol`` and ``OPTIONS`` (key -> default)."""
+    """An emulated device. Subclasses set ``protocol`` and ``OPTIONS`` (key -> default).
+
+    Option errors: raise :class:`OptionError` naming the option (or ValueError for one that
+    concerns several); :meth:`option_pty_path` and :meth:`option_output_path` check a path option.
+    """
 
     protocol: ClassVar[str]
     OPTIONS: ClassVar[Mapping[str, Any]] = {}
@@ -128,8 +143,29 @@ class Device(ABC):
             k = unknown[0]
             close = difflib.get_close_matches(k, list(self.OPTIONS), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else f"; valid: {', '.join(self.OPTIONS)}"
-            raise ValueError(f"device {name!r} ({self.protocol}): unknown option {k!r}{hint}")
+            raise OptionError(k, f"unknown option {k!r}{hint}", f"device {name!r} ({self.protocol})")
         self.options: dict[str, Any] = {**self.OPTIONS, **options}
+
+    def option_pty_path(self, key: str, default: str) -> Path:
+        """``ctx.pty_path`` of the option ``key`` (``default`` when unset); a path the run
+        folder refuses raises :class:`OptionError` naming ``key``."""
+        try:
+            return self.ctx.pty_path(self._path_option(key) or None, default)
+        except ValueError as exc:
+            raise OptionError(key, str(exc), f"device {self.name!r}") from None
+
+    def option_output_path(self, key: str) -> Path:
+        """``ctx.output_path`` of the option ``key``; a refused path raises :class:`OptionError`."""
+        try:
+            return self.ctx.output_path(self._path_option(key))
+        except ValueError as exc:
+            raise OptionError(key, str(exc), f"device {self.name!r}") from None
+
+    def _path_option(self, key: str) -> str:
+        value = self.options[key]
+        if value is not None and not isinstance(value, str):
+            raise OptionError(key, f"expected a relative path, got {value!r}", f"device {self.name!r}")
+        return value or ""
 
     @abstractmethod
     async def start(self) -> list[Endpoint]:

@@ -113,6 +113,8 @@ class ModbusSensorDevice(Device):
             raise ValueError(f"device {name!r}: baudrate must be a positive integer, got {o['baudrate']!r}")
         if not (isinstance(o["device_id"], int) and 0 <= o["device_id"] <= 247):
             raise ValueError(f"device {name!r}: device_id must be 1..247 (0: the map's), got {o['device_id']!r}")
+        if o["path"]:  # a path that leaves the run folder fails here, with the scenario line, not at start
+            self.option_pty_path("path", "")
         scenario = getattr(ctx, "scenario", None)
         self._base: Path | None = scenario.folder if scenario is not None else None
         self.map: RegisterMap = load_map(find_map(str(o["map"] or self.DEFAULT_MAP), self._base))

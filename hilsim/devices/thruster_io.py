@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from typing import Any, Callable, Mapping
 
-from hilsim.devices.base import DeviceContext
+from hilsim.devices.base import DeviceContext, OptionError
 from hilsim.links.can import CanBus, bus_class
 from hilsim.sim.thrusters import ThrusterSet, ThrusterTelemetry
 
@@ -78,13 +78,16 @@ def check_can_options(device: str, options: Mapping[str, Any]) -> None:
 
 def bus_location(ctx: DeviceContext, options: Mapping[str, Any]) -> Any:
     """What tells one bus of a transport from another: the socketcand port, the slcan pty path
-    (inside the run folder; ValueError for a path that leaves it), the interface name."""
+    (inside the run folder; OptionError "path" for one that leaves it), the interface name."""
     transport = str(options["transport"])
     channel = str(options["channel"])
     if transport == "socketcand":
         return int(options["port"])
     if transport == "slcan":
-        return str(ctx.pty_path(options["path"], f"slcan-{channel}"))
+        try:
+            return str(ctx.pty_path(options["path"], f"slcan-{channel}"))
+        except (TypeError, ValueError) as exc:
+            raise OptionError("path", str(exc)) from None
     return channel
 
 

@@ -42,7 +42,7 @@ class VescUartDevice(Device):
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.thrusters = vehicle_thrusters(ctx, name)
-        self.path = ctx.pty_path(self.options["path"], name)  # inside the run folder
+        self.path = self.option_pty_path("path", name)  # inside the run folder
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i + 1, (0, 255),
                                        "controller id")
         self.controller_id = int(self.options["controller_id"])

@@ -44,7 +44,7 @@ class VrcsrDevice(Device):
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.thrusters = vehicle_thrusters(ctx, name)
-        self.path = ctx.pty_path(self.options["path"], name)  # inside the run folder
+        self.path = self.option_pty_path("path", name)  # inside the run folder
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i, (0, 62),
                                        "motor id")
         node_ids = self.options["node_ids"]

@@ -26,7 +26,7 @@ import numpy as np
 
 from hilsim.config import ConfigError, Doc, load_toml
 from hilsim.devices import device_class
-from hilsim.devices.base import Device, Endpoint, RenderedFrame, RenderFailed
+from hilsim.devices.base import Device, Endpoint, OptionError, RenderedFrame, RenderFailed
 from hilsim.resources import find_profile
 from hilsim.runtime.clock import RealTimeClock, ScaledClock, VirtualClock
 from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, Scheduler, VehicleLoop
@@ -121,8 +121,20 @@ class Bridge:
             out.append((name, proto, {k: v for k, v in t.items() if k not in ("name", "protocol", "description")}))
         return out
 
+    def _device_error(self, doc: Doc, name: str, exc: Exception, prefix: str = "") -> ConfigError:
+        """A device's error as the scenario's: file, line and ``[devices.<name>(.<option>)]``."""
+        if isinstance(exc, ConfigError) and exc.path is not None and exc.path.resolve() == self.scenario.path:
+            return exc  # already names the scenario's line and key
+        if isinstance(exc, OptionError):
+            return doc.error(f"devices.{name}.{exc.option}", prefix + exc.message)
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        return doc.error(f"devices.{name}", f"{prefix}{message}")
+
     async def start(self) -> list[Endpoint]:
-        """Start the worker, every device and the physics; returns the endpoints."""
+        """Start the worker, every device and the physics; returns the endpoints.
+
+        A device refusing its options (when built or started), or failing to open its link,
+        raises :class:`ConfigError` naming the scenario's file, the line and the device's key."""
         if self._started:
             return self.endpoints
         self._started = True
@@ -139,7 +151,7 @@ class Bridge:
             try:
                 dev = cls(name, options, self)
             except (ValueError, KeyError) as exc:
-                raise doc.error(f"devices.{name}", str(exc.args[0] if exc.args else exc)) from None
+                raise self._device_error(doc, name, exc) from None
             if proto == "ddf-stream" and first_ddf and self.record is not None:
                 dev.record_path = self.record  # type: ignore[attr-defined]
                 first_ddf = False
@@ -151,7 +163,10 @@ class Bridge:
         self.vehicle.attach(self.scheduler)
         try:
             for d in self.devices:
-                self.endpoints.extend(await d.start())
+                try:
+                    self.endpoints.extend(await d.start())
+                except (ValueError, KeyError, OSError) as exc:  # a bad option, a port in use...
+                    raise self._device_error(doc, d.name, exc, "cannot start: ") from None
         except BaseException:
             await self.close()
             raise

@@ -156,10 +156,6 @@ def _lines_of(text: str, needle: str) -> int:
     return text[:text.index(needle)].count("\n") + 1
 
 
-NO_LINE = ("hilsim/runtime/bridge.py: a device's option error names [devices.<name>] but no line "
-           "(Doc.line_of cannot find a [[devices]] entry by its name)")
-
-
 def _cases() -> list:
     t = DEFAULT
     dev = lambda name, old, new: _after(t, f'name = "{name}"', old, new)  # noqa: E731
@@ -169,42 +165,33 @@ def _cases() -> list:
         pytest.param("unknown-option", dev("sonar_ddf", "port = 0", "frame_rate = 10\nport = 0"),
                      r"scenario\.toml:(?P<line>\d+): \[devices\.sonar_ddf(\.frame_rate)?\]: .*unknown option "
                      r"'frame_rate'; did you mean 'frame_rate_hz'\?", "frame_rate = 10",
-                     id="unknown-option", marks=pytest.mark.xfail(strict=True, reason=NO_LINE)),
+                     id="unknown-option"),
         pytest.param("pty-dotdot", dev("vesc_uart", "controller_id = 1", 'controller_id = 1\npath = "../escape"'),
                      r"scenario\.toml:(?P<line>\d+): \[devices\.vesc_uart(\.path)?\]: .*'\.\./escape' leaves",
-                     'path = "../escape"', id="pty-dotdot", marks=pytest.mark.xfail(strict=True, reason=NO_LINE)),
+                     'path = "../escape"', id="pty-dotdot"),
         pytest.param("pty-absolute", dev("vrcsr", "group_id = 0x81", 'group_id = 0x81\npath = "/etc/x"'),
                      r"scenario\.toml:(?P<line>\d+): \[devices\.vrcsr(\.path)?\]: .*'/etc/x' is absolute",
-                     'path = "/etc/x"', id="pty-absolute", marks=pytest.mark.xfail(strict=True, reason=NO_LINE)),
+                     'path = "/etc/x"', id="pty-absolute"),
         pytest.param("slcan-absolute", dev("dronecan_esc", "node_id = 20", 'node_id = 20\npath = "/tmp/slcan0"'),
                      r"scenario\.toml:(?P<line>\d+): \[devices\.dronecan_esc(\.path)?\]: .*'/tmp/slcan0' is absolute",
-                     'path = "/tmp/slcan0"', id="slcan-absolute", marks=pytest.mark.xfail(strict=True, reason=NO_LINE)),
+                     'path = "/tmp/slcan0"', id="slcan-absolute"),
         pytest.param("modbus-rtu-dotdot", dev("depth", "device_id = 1 ", 'path = "../../depth.tty"\ndevice_id = 1 '),
                      r"scenario\.toml:(?P<line>\d+): \[devices\.depth(\.path)?\]: .*'\.\./\.\./depth\.tty' leaves",
-                     'path = "../../depth.tty"', id="modbus-rtu-dotdot",
-                     marks=pytest.mark.xfail(strict=True, reason=(
-                         "hilsim/devices/modbus_sensor.py checks the RTU path only in start(), and Bridge.start "
-                         "does not wrap device.start() errors: the message names neither file, line nor key"))),
+                     'path = "../../depth.tty"', id="modbus-rtu-dotdot"),
         pytest.param("aris-record", t.replace('# record = "out/sonar.aris"       # optional .aris recording',
                                               'record = "../../x.aris"'),
                      r"scenario\.toml:(?P<line>\d+): \[devices\.sonar_aris(\.record)?\]: .*'\.\./\.\./x\.aris' leaves",
-                     'record = "../../x.aris"', id="aris-record", marks=pytest.mark.xfail(strict=True, reason=NO_LINE)),
+                     'record = "../../x.aris"', id="aris-record"),
         pytest.param("mesh-escape", t.replace('primitive = "box"\nmaterial = "plastic"',
                                               'mesh = "../../../etc/passwd"\nmaterial = "plastic"'),
                      r"scenario\.toml:(?P<line>\d+): \[objects\.cuboid\.mesh\]: path '\.\./\.\./\.\./etc/passwd' "
                      r"leaves the scenario folder", 'mesh = "../../../etc/passwd"', id="mesh-escape"),
         pytest.param("profile-dotdot", t.replace('profile = "cyclops"', 'profile = "../../outside/cyclops"'),
                      r"scenario\.toml:(?P<line>\d+): \[vehicle\.profile\]: .*leaves",
-                     'profile = "../../outside/cyclops"', id="profile-dotdot",
-                     marks=pytest.mark.xfail(strict=True, reason=(
-                         "hilsim/resources.py find_profile joins the reference to the scenario folder unchecked: "
-                         "'../..' and absolute references load TOML files from anywhere"))),
+                     'profile = "../../outside/cyclops"', id="profile-dotdot"),
         pytest.param("profile-absolute", t.replace('profile = "didson_hf"', 'profile = "{outside}/mysonar"'),
                      r"scenario\.toml:(?P<line>\d+): \[sensors\.sonar\.profile\]: .*absolute",
-                     'profile = "{outside}/mysonar"', id="profile-absolute",
-                     marks=pytest.mark.xfail(strict=True, reason=(
-                         "hilsim/resources.py find_profile: an absolute profile reference is read from outside "
-                         "the scenario folder"))),
+                     'profile = "{outside}/mysonar"', id="profile-absolute"),
         pytest.param("profile-bad-key", t.replace('profile = "didson_hf"', 'profile = "mysonar"'),
                      r"mysonar\.toml:(?P<line>\d+): \[window\.sampels\]: .*(did you mean|valid keys)",
                      "sampels", id="profile-bad-key"),
@@ -258,3 +245,31 @@ def test_bad_scenario_stops_with_file_line_and_key(error_runs, case_id, text, pa
     if case_id != "profile-bad-key":  # the line in the scenario file
         where = where.replace("{outside}", str(folder.parent.parent / "outside"))
         assert int(m.group("line")) == _lines_of(text, where), errors[0]
+
+
+def test_a_device_that_cannot_start_is_named_with_its_line(tmp_path, udp_ports):
+    """An error when a device opens its link (here a Modbus TCP port already taken) is one
+    line naming the scenario, the device's entry and the cause, and nothing is left behind."""
+    status_sock, beacon_sock = udp_ports
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        text = _after(DEFAULT, 'name = "depth"', "port = 0", f"port = {port}")
+        path = scenario_copy(tmp_path, status_sock.getsockname()[1], beacon_sock.getsockname()[1], text)
+        run_dir = tmp_path / "run"
+        proc = subprocess.run(
+            [sys.executable, "-m", "hilsim", "run", str(path), "--fast", "--duration", "0.2",
+             "--status-interval", "0", "--pty-dir", str(run_dir)],
+            capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 1, (proc.returncode, proc.stderr[-2000:])
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("hilsim run: error:")]
+    assert len(errors) == 1, proc.stderr[-2000:]
+    m = re.search(r"scenario\.toml:(?P<line>\d+): \[devices\.depth\]: cannot start: ", errors[0])
+    assert m is not None, errors[0]
+    written = path.read_text()
+    entry = written[:written.index('name = "depth"')].rstrip("\n")
+    assert int(m.group("line")) == entry.count("\n") + 1  # the entry's [[devices]] line
+    assert written.splitlines()[int(m.group("line")) - 1] == "[[devices]]"
+    assert not list(run_dir.glob("*")), "pty symlinks left behind"
