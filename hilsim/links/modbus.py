@@ -12,12 +12,15 @@ Layers, innermost first:
   register. Requests are decoded by pymodbus's PDU decoder and answered with
   pymodbus's response classes.
 * :class:`TcpSession` and :class:`RtuSession`: sans-I/O framing (bytes in, reply
-  frames out) with pymodbus's ``FramerSocket`` (MBAP) and ``FramerRTU`` (CRC).
-  TCP: a header that is not Modbus (protocol id != 0, length outside 2..254)
-  closes the connection. RTU: a frame with a bad CRC is dropped in silence, a
-  frame for another address is ignored, broadcast (address 0) writes are done
-  without a reply, and what the length rules cannot delimit is taken as one
-  frame when the line has been idle for 3.5 characters (as a real device does).
+  frames out) with pymodbus's ``FramerSocket`` (MBAP) and ``FramerRTU`` (CRC,
+  encoding). TCP: a header that is not Modbus (protocol id != 0, length outside
+  2..254) closes the connection. RTU: requests are delimited by the length their
+  function code defines (:func:`rtu_request_length`), so frames that arrive
+  back to back are each answered, in order; a frame with a bad CRC is dropped in
+  silence (and the next good frame found behind it), a frame for another address
+  is ignored, broadcast (address 0) writes are done without a reply, and what the
+  length rules cannot delimit is taken as one frame when the line has been idle
+  for 3.5 characters (as a real device does).
 * :class:`ModbusTcpServer` (on :class:`hilsim.links.tcp.TcpServer`: client limit
   with a log line, per-client bounded queues) and :class:`ModbusRtuServer` (on
   :class:`hilsim.links.pty.PtyLink`: a stable path, replies paced at the baud
@@ -72,6 +75,78 @@ MAX_TCP_LENGTH = 254  # MBAP length field: unit id + PDU (max 253 bytes)
 _DECODER = DecodePDU(True)  # request decoder (server side); stateless
 
 
+RTU_NEED_MORE = 0      # rtu_request_length: more bytes are needed to tell
+RTU_UNDELIMITED = -1   # rtu_request_length: the length rules cannot tell (ends at silence)
+# Request ADU lengths (address + PDU + CRC) by function code, from the Modbus application
+# protocol spec V1.1b3 (section 6) and its serial line spec; pymodbus 3.16's request classes
+# (rtu_frame_size, rtu_byte_count_pos) agree where both define one.
+_RTU_FIXED = {0x01: 8, 0x02: 8, 0x03: 8, 0x04: 8, 0x05: 8, 0x06: 8,  # address, count/value
+              0x07: 4, 0x0B: 4, 0x0C: 4, 0x11: 4,                    # no data
+              0x16: 10,                                              # mask write: address, AND, OR
+              0x18: 6}                                               # read FIFO: address
+# function code -> index of the byte count in the ADU; length = count + index + 3 (count byte, CRC)
+_RTU_COUNTED = {0x0F: 6, 0x10: 6,  # address, quantity, byte count
+                0x14: 2, 0x15: 2,  # file records: byte count
+                0x17: 10}          # read address, quantity, write address, quantity, byte count
+# 08 diagnostics: sub-functions with 2 bytes of data; 00 (return query data) echoes any
+# data, and the reserved ones are undefined. 15 (Modbus Plus statistics) is in PI-MBUS-300.
+_RTU_DIAGNOSTIC_SUBS = frozenset([0x01, 0x02, 0x03, 0x04, *range(0x0A, 0x13), 0x14, 0x15])
+
+
+def rtu_request_length(buf: bytes | bytearray, pos: int = 0) -> int:
+    """Length of the RTU request starting at ``buf[pos]`` by its function code:
+    :data:`RTU_NEED_MORE` if more bytes must arrive to tell, :data:`RTU_UNDELIMITED`
+    if the rules cannot (an unknown or user function, 08/00 with other than 2 bytes
+    of data, 2B with a MEI type other than 0E, a length over :data:`MAX_RTU_ADU`).
+
+    Unlike pymodbus: 08/00 is taken as 8 bytes only when those 8 bytes carry a good
+    CRC (the spec allows any data; masters send 2 bytes), the reserved 08
+    sub-functions are not delimited, and a function code with the top bit set (an
+    exception response, not a request) is not taken as 5 bytes.
+    """
+    avail = len(buf) - pos
+    if avail < 2:
+        return RTU_NEED_MORE
+    fc = buf[pos + 1]
+    if fc in _RTU_FIXED:
+        return _RTU_FIXED[fc]
+    if fc in _RTU_COUNTED:
+        at = _RTU_COUNTED[fc]
+        if avail <= at:
+            return RTU_NEED_MORE
+        n = buf[pos + at] + at + 3
+        return n if n <= MAX_RTU_ADU else RTU_UNDELIMITED
+    if fc == 0x08:
+        if avail < 4:
+            return RTU_NEED_MORE
+        sub = (buf[pos + 2] << 8) | buf[pos + 3]
+        if sub in _RTU_DIAGNOSTIC_SUBS:
+            return 8
+        if sub != 0:
+            return RTU_UNDELIMITED
+        if avail < 8:
+            return RTU_NEED_MORE
+        return 8 if _crc_ok(buf, pos, pos + 8) else RTU_UNDELIMITED
+    if fc == 0x2B:
+        if avail < 3:
+            return RTU_NEED_MORE
+        return 7 if buf[pos + 2] == 0x0E else RTU_UNDELIMITED  # read device identification
+    return RTU_UNDELIMITED
+
+
+_CRC_TABLE = tuple(FramerRTU.crc16_table)
+
+
+def _crc_ok(buf: bytes | bytearray, start: int, end: int) -> bool:
+    """``buf[start:end]`` ends with the CRC-16/MODBUS of the bytes before it (low byte first).
+    pymodbus's table, in place: about twice as fast as ``FramerRTU.compute_CRC`` on a
+    slice, which counts while hunting through garbage (a CRC per candidate start)."""
+    crc, table = 0xFFFF, _CRC_TABLE
+    for i in range(start, end - 2):
+        crc = (crc >> 8) ^ table[(crc ^ buf[i]) & 0xFF]
+    return crc == buf[end - 2] | (buf[end - 1] << 8)
+
+
 @dataclass
 class ModbusStats:
     """Counters of one server (a session's) or of one target (what it handled, over all its servers)."""
@@ -82,7 +157,8 @@ class ModbusStats:
     ignored: int = 0          # RTU frames for other addresses
     broadcasts: int = 0
     crc_errors: int = 0       # RTU frames dropped for a bad CRC
-    malformed: int = 0        # TCP headers that closed the connection, RTU bytes dropped unframed
+    malformed: int = 0        # TCP headers that closed the connection; RTU: too short at silence, or
+                              # undelimitable past MAX_RTU_ADU bytes
     dropped: int = 0          # replies not sent: the client did not read them
     throttled: int = 0        # times a client went over its request-rate budget
     internal_errors: int = 0  # our bugs (logged, answered 04)
@@ -276,63 +352,114 @@ class TcpSession:
 class RtuSession:
     """Modbus RTU framing for one serial line, any number of targets on it (sans-I/O).
 
-    ``receive_data(bytes)`` -> reply frames for the frames the length rules
-    delimit; ``silence()`` (the line idle for 3.5 characters) -> the rest of the
-    buffer taken as one frame (an unknown function, a garbled frame).
+    ``receive_data(bytes)`` -> the replies, in order, to every frame the length
+    rules delimit (any number per call, however the bytes were cut: the replies
+    depend only on the byte stream and where the line went idle); ``silence()``
+    (the line idle for 3.5 characters) -> the rest of the buffer taken as one
+    frame (an unknown function, a garbled or cut frame).
+
+    The length of a request comes from its function code (:func:`rtu_request_length`),
+    not from pymodbus's ``FramerRTU.decode``, which reports the whole buffer as
+    used once it finds a frame (so of two frames in one read only the first was
+    answered) and drops the whole buffer on a bad CRC. A frame whose CRC fails is
+    dropped and counted; then, until a frame checks out or the line goes idle, the
+    session hunts byte by byte, from the byte after the garbled frame's first, for
+    the next frame whose length rule and CRC agree (a corrupted function code or
+    byte count must not cost the frames behind it; a candidate still arriving is
+    waited for, and given up at silence). While hunting, a function the rules
+    cannot delimit is skipped: such a frame sent right behind a garbled one,
+    without a gap, is lost with it (as on a real bus, where no gap separates
+    them). At most :data:`MAX_RTU_ADU` bytes are kept.
     """
 
     def __init__(self, targets: Iterable[ModbusTarget] = (), stats: ModbusStats | None = None):
         self.targets = list(targets)
         self.stats = stats if stats is not None else ModbusStats()
-        self.framer = FramerRTU(_DECODER)
+        self.framer = FramerRTU(_DECODER)  # replies are built with pymodbus's encoder
         self.buffer = bytearray()
+        self._resyncing = False
 
     @property
     def pending(self) -> bool:
+        """Bytes of an unfinished (or undelimitable) frame are buffered."""
         return bool(self.buffer)
 
+    @property
+    def resyncing(self) -> bool:
+        """A frame failed its CRC (or ran past MAX_RTU_ADU) since the line was last idle: the
+        session hunts for the next good frame until :meth:`silence` (call it when the line
+        goes idle, even with nothing buffered)."""
+        return self._resyncing
+
     def receive_data(self, data: bytes) -> list[bytes]:
+        """Take bytes off the line; the replies to the frames they complete, in order."""
         self.buffer += data
-        out: list[bytes] = []
-        for _ in range(64):  # bounded: each pass consumes the buffer or waits
-            if len(self.buffer) > MAX_RTU_ADU:
-                self.stats.malformed += 1
-                self.buffer.clear()
-            if not self.buffer:
-                break
-            try:
-                used, unit, _, pdu = self.framer.decode(bytes(self.buffer))
-            except Exception:  # a pymodbus decoding bug: drop what we have
-                self.stats.internal_errors += 1
-                log.exception("rtu: framer failed on %s", self.buffer.hex())
-                self.buffer.clear()
-                break
-            if not used:
-                break  # incomplete, or not delimitable: wait for more or for silence
-            del self.buffer[:used]
-            if not pdu:
-                self.stats.crc_errors += 1
-                continue
-            reply = self._dispatch(unit, pdu)
-            if reply is not None:
-                out.append(reply)
-        return out
+        return self._parse(final=False)
 
     def silence(self) -> list[bytes]:
-        """The line went idle: whatever is buffered is one frame."""
-        frame = bytes(self.buffer)
+        """The line went idle: whatever is buffered ends there (at a frame boundary it is
+        one frame); the next byte starts a frame."""
+        out = self._parse(final=True)
         self.buffer.clear()
-        if not frame:
-            return []
-        if len(frame) < 4:
-            self.stats.malformed += 1
-            return []
-        crc = int.from_bytes(frame[-2:], "big")
-        if not FramerRTU.check_CRC(frame[:-2], crc):
-            self.stats.crc_errors += 1
-            return []
-        reply = self._dispatch(frame[0], frame[1:-2])
-        return [reply] if reply is not None else []
+        self._resyncing = False
+        return out
+
+    def _parse(self, final: bool) -> list[bytes]:
+        """Answer the frames in the buffer and drop what is consumed. ``final``: no more
+        bytes come before the next frame (the line is idle)."""
+        buf = self.buffer
+        out: list[bytes] = []
+        pos = 0
+        try:
+            for _ in range(len(buf) + 1):  # bounded: each pass moves pos on or stops
+                avail = len(buf) - pos
+                if avail <= 0:
+                    break
+                n = rtu_request_length(buf, pos)
+                if 0 < n <= avail:  # a complete frame by the length rules
+                    end = pos + n
+                    if _crc_ok(buf, pos, end):
+                        self._resyncing = False
+                        reply = self._dispatch(buf[pos], bytes(buf[pos + 1:end - 2]))
+                        if reply is not None:
+                            out.append(reply)
+                        pos = end
+                    else:  # a garbled frame (or, hunting, not a frame start): look one byte on
+                        if not self._resyncing:
+                            self.stats.crc_errors += 1
+                            self._resyncing = True
+                        pos += 1
+                    continue
+                if self._resyncing:  # hunting: only frames the rules delimit can be found
+                    if final or n == RTU_UNDELIMITED:
+                        pos += 1
+                        continue
+                    break  # a candidate still arriving
+                if not final:
+                    if n == RTU_UNDELIMITED and avail > MAX_RTU_ADU:  # longer than any frame
+                        self.stats.malformed += 1
+                        self._resyncing = True
+                        pos += 1
+                        continue
+                    break  # wait for the rest of the frame, or for silence
+                # the line went idle at a frame boundary: the rest is one frame
+                start, pos = pos, len(buf)
+                if avail < FramerRTU.MIN_SIZE:
+                    self.stats.malformed += 1
+                elif _crc_ok(buf, start, pos):
+                    reply = self._dispatch(buf[start], bytes(buf[start + 1:pos - 2]))
+                    if reply is not None:
+                        out.append(reply)
+                else:  # garbled, or frames run together: look inside for good ones
+                    self.stats.crc_errors += 1
+                    self._resyncing = True
+                    pos = start + 1
+        except Exception:  # our bug: drop what we have, keep serving
+            self.stats.internal_errors += 1
+            log.exception("rtu: framing failed on %s", buf.hex())
+            pos = len(buf)
+        del buf[:pos]
+        return out
 
     def _dispatch(self, unit: int, pdu: bytes) -> bytes | None:
         try:
@@ -366,14 +493,16 @@ class ModbusTcpServer:
     0: none); a client over it is not read from until it is back within budget, so
     a flood slows only the flooder (TCP backpressure), never loses or garbles answers;
     batch: requests answered per client before letting the others in;
-    write_buffer [bytes]: replies a client has not read beyond this are dropped (counted).
+    write_buffer [bytes]: replies a client has not read beyond this are dropped (counted);
+    idle_timeout [s]: a client that sent nothing and was sent nothing this long is dropped
+    (None: never; done by :class:`~hilsim.links.tcp.TcpServer`).
     A peer that does not speak Modbus TCP is closed at once (holding it would let a
     reconnecting one fill the client slots); those closings log one warning a second.
     """
 
     def __init__(self, name: str, target: ModbusTarget, host: str = "127.0.0.1", port: int = 0, *,
                  max_clients: int = 32, max_rate: float = 1000.0, burst: int = 32, batch: int = 4,
-                 write_buffer: int = 64 * 1024):
+                 write_buffer: int = 64 * 1024, idle_timeout: float | None = None):
         if max_rate < 0 or burst < 1:
             raise ValueError(f"{name}: max_rate must be >= 0 and burst >= 1")
         self.name = name
@@ -386,6 +515,7 @@ class ModbusTcpServer:
         self._unlogged = 0
         self.stats = ModbusStats()
         self.link = TcpServer(name, host, port, max_clients=max_clients, read_size=1024,
+                              idle_timeout=idle_timeout,
                               on_connect=self._on_connect, on_data=self._on_data)
 
     @property
@@ -515,7 +645,7 @@ class ModbusRtuServer:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        if self.session.pending:
+        if self.session.pending or self.session.resyncing:
             self._timer = asyncio.get_running_loop().call_later(self.silence_time, self._on_silence)
 
     def _on_silence(self) -> None:
@@ -524,5 +654,5 @@ class ModbusRtuServer:
             self.link.write(frame)
 
 
-__all__ = ["ModbusRtuServer", "ModbusStats", "ModbusTarget", "ModbusTcpServer", "RtuSession", "TcpSession",
-           "WriteAction"]
+__all__ = ["RTU_NEED_MORE", "RTU_UNDELIMITED", "ModbusRtuServer", "ModbusStats", "ModbusTarget", "ModbusTcpServer",
+           "RtuSession", "TcpSession", "WriteAction", "rtu_request_length"]
