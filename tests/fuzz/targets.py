@@ -241,14 +241,11 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
         no_resync_after_truncation="TCP does not lose bytes: a cut ADU swallows the start of the next one "
                                    "and the misread header closes the connection"),
     Target(
-        "modbus-rtu", "Modbus RTU requests (device side): links.modbus.RtuSession (pymodbus FramerRTU)",
+        "modbus-rtu", "Modbus RTU requests (device side): links.modbus.RtuSession (request lengths by function code)",
         make=A.ModbusRtuLine, feed=A.rtu_feed, gap=A.rtu_silence, buffered=lambda line: len(line.session.buffer),
         bound=mb.MAX_RTU_ADU, measure="RtuSession.buffer", samples=S.rtu_samples, seeds=S.rtu_seeds,
         oversize=S.rtu_oversize,
-        pipelined=False,
-        chunking_matters="pymodbus's FramerRTU.decode reports the whole buffer as used once it finds a frame, "
-                         "so of two frames that arrive in one read only the first is answered (an RTU master "
-                         "sends one request and waits for its reply)"),
+        pipelined=True),
 ]}
 
 
