@@ -40,6 +40,8 @@ class DdfStreamDevice(Device):
         "frame_rate_hz": None,      # default: the profile's
         "gain_db": 20,              # receiver gain [dB] 0..40 (fixed-gain mode)
         "max_clients": 16,
+        "idle_timeout_s": 0,        # drop a client with no traffic either way this long (0: never; a
+                                    # stream client only listens, and the frames stop in a sonar dropout)
         "queue_frames": 2,          # per-client queue [frames]
         "serial_number": 1,
     }
@@ -98,6 +100,7 @@ class DdfStreamDevice(Device):
         frame = ddf.FRAME_HEADER_SIZE + self.profile.n_beams * self.settings.n_samples
         self.server = TcpServer(self.name, self.ctx.bind, int(self.options["port"]),
                                 max_clients=int(self.options["max_clients"]),
+                                idle_timeout=float(self.options["idle_timeout_s"]),
                                 queue_len=int(self.options["queue_frames"]),
                                 write_buffer=frame, sndbuf=2 * frame,
                                 on_connect=self._on_connect, on_data=self._on_data)

@@ -22,7 +22,9 @@ map's default), map (a file in ``protocols/`` or the scenario folder), sensor
 (a profile reference, ``keller_serie30``), rate [Hz] (0: the profile's), mount
 (a scenario ``[[sensors]]`` name whose position is the pressure port's lever
 arm; "" the body origin), max_clients (per TCP server), max_client_rate [requests/s]
-per TCP client (0: no limit; a client over it is read more slowly, nothing is lost).
+per TCP client (0: no limit; a client over it is read more slowly, nothing is lost),
+idle_timeout_s (a TCP client that sends no request for this long is disconnected, as
+Modbus TCP gateways do; default 60, 0: never).
 """
 
 from __future__ import annotations
@@ -96,7 +98,7 @@ class ModbusSensorDevice(Device):
     OPTIONS: ClassVar[Mapping[str, Any]] = {
         "transport": ["tcp", "rtu"], "port": 0, "path": "", "baudrate": 9600, "parity": "N", "stop_bits": 1,
         "device_id": 0, "map": "", "sensor": "", "rate": 0.0, "mount": "", "max_clients": 32,
-        "max_client_rate": 1000.0,
+        "max_client_rate": 1000.0, "idle_timeout_s": 60.0,
     }
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
@@ -207,7 +209,8 @@ class ModbusSensorDevice(Device):
         extra = {"device_id": self.target.device_id, "map": self.map.name}
         if "tcp" in self.transports:
             self.tcp = ModbusTcpServer(self.name, self.target, self.ctx.bind, int(o["port"]),
-                                       max_clients=int(o["max_clients"]), max_rate=float(o["max_client_rate"]))
+                                       max_clients=int(o["max_clients"]), max_rate=float(o["max_client_rate"]),
+                                       idle_timeout=float(o["idle_timeout_s"]) or None)
             host, port = await self.tcp.start()
             endpoints.append(Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}", extra))
         if "rtu" in self.transports:

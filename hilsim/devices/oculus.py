@@ -59,6 +59,7 @@ class OculusDevice(Device):
         "part_number": oc.PART_M750D,
         "max_rows": 1024,                   # cap on nRanges per ping
         "max_clients": 8,
+        "idle_timeout_s": 0,      # drop a client with no traffic either way this long (0: never: standby is legal)
         "queue_frames": 2,                  # per-client queue [pings]
     }
 
@@ -117,6 +118,7 @@ class OculusDevice(Device):
 
     def _server(self, port: int, frame: int) -> TcpServer:
         return TcpServer(self.name, self.ctx.bind, port, max_clients=int(self.options["max_clients"]),
+                         idle_timeout=float(self.options["idle_timeout_s"]),
                          queue_len=int(self.options["queue_frames"]), write_buffer=frame, sndbuf=2 * frame,
                          on_connect=self._on_connect, on_data=self._on_data, on_disconnect=self._on_disconnect)
 

@@ -382,3 +382,28 @@ def test_bridge_two_sensors_on_one_rs485_line(tmp_path: Path) -> None:
         assert not (tmp_path / "bus.tty").exists()
 
     asyncio.run(main())
+
+
+def test_an_idle_modbus_tcp_client_is_disconnected_and_a_polling_one_kept(tmp_path: Path) -> None:
+    """idle_timeout_s: a client that sends no request for that long is disconnected (its slot
+    freed, as Modbus TCP gateways do); one polling well inside it keeps its connection."""
+    async def main() -> None:
+        ctx = SmallContext(tmp_path)
+        spec = ("depth", "modbus-keller", {"transport": ["tcp"], "idle_timeout_s": 1.0})
+        async with running(ctx, spec) as (devices, endpoints):
+            e = ep(endpoints, "depth", "tcp")
+            host, port = e.address.rsplit(":", 1)
+            idle_r, idle_w = await asyncio.open_connection(host, int(port))
+            poller = await tcp_client(e)
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 3.0
+            while loop.time() < end:
+                await read_p1(poller)
+                await asyncio.sleep(0.2)
+            assert await asyncio.wait_for(idle_r.read(10), 2.0) == b""   # closed by the server
+            await read_p1(poller)                                      # still served
+            assert devices[0].tcp.link.stats.idle_drops == 1
+            poller.close()
+            idle_w.close()
+
+    asyncio.run(main())
