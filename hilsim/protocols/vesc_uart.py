@@ -14,7 +14,10 @@ CRCs are skipped and counted, and the decoder resynchronises on the next
 valid packet, also when a bogus length field claims more bytes than will
 come (a complete valid packet later in the buffer wins). A length over
 ``max_payload`` is rejected at once, so nothing is allocated for it; the
-buffer never holds more than one maximal packet plus the last chunk fed.
+buffer never holds more than one maximal packet plus the last chunk fed
+(and, until they are dropped in bulk, as many consumed bytes). Those rules
+live in :mod:`hilsim.protocols.framing`, shared with VRCSR; decoding costs
+amortized linear time however the bytes are cut.
 """
 
 from __future__ import annotations
@@ -22,14 +25,19 @@ from __future__ import annotations
 import binascii
 import enum
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 from typing import Final, Union
+
+from hilsim.protocols.framing import NEED, OK, ResyncFramer, Verdict
 
 START_SHORT: Final = 0x02
 START_LONG: Final = 0x03
 END: Final = 0x03
 MAX_PAYLOAD: Final = 512          # the firmware's PACKET_MAX_PL_LEN
+
+_START: Final = re.compile(b"[\x02\x03]")  # START_SHORT or START_LONG
 
 COMM_FW_VERSION: Final = 0
 COMM_GET_VALUES: Final = 4
@@ -42,7 +50,7 @@ COMM_FORWARD_CAN: Final = 34
 COMM_GET_VALUES_SELECTIVE: Final = 50
 
 
-def crc16(data: bytes) -> int:
+def crc16(data: bytes | bytearray) -> int:
     """CRC-16/XMODEM of ``data`` (poly 0x1021, init 0, no reflection)."""
     return binascii.crc_hqx(data, 0)
 
@@ -72,93 +80,58 @@ class DecoderStats:
 
 
 @dataclass
-class PacketDecoder:
-    """Byte stream -> payloads (bytes). Never raises on any input."""
+class PacketDecoder(ResyncFramer[bytes]):
+    """Byte stream -> payloads (bytes). Never raises on any input.
+
+    The resynchronisation rules and their linear cost are :class:`~hilsim.protocols.framing.ResyncFramer`'s;
+    this class gives VESC's framing: where a packet starts, what makes it valid, what is counted.
+    """
 
     max_payload: int = MAX_PAYLOAD
     stats: DecoderStats = field(default_factory=DecoderStats)
-    _buf: bytearray = field(default_factory=bytearray)
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf)
-
-    def receive_data(self, data: bytes) -> None:
-        self._buf += data
-
-    def _candidate(self, pos: int) -> tuple[str, int]:
-        """Classify a packet starting at ``pos``: ("ok"|"need"|"bad", total length)."""
-        buf = self._buf
-        start = buf[pos]
-        hl = 2 if start == START_SHORT else 3
-        if len(buf) - pos < hl:
-            return "need", 0
-        n = buf[pos + 1] if hl == 2 else int.from_bytes(buf[pos + 1:pos + 3], "big")
-        if n == 0 or n > self.max_payload or (hl == 3 and n <= 255):
-            return "bad", 0
-        total = hl + n + 3
-        if len(buf) - pos < total:
-            return "need", total
-        end = pos + total
-        if buf[end - 1] != END:
-            return "bad", 0
-        payload = bytes(buf[pos + hl:pos + hl + n])
-        if crc16(payload) != int.from_bytes(buf[end - 3:end - 1], "big"):
-            return "crc", total
-        return "ok", total
-
-    def _next_start(self, pos: int) -> int:
-        buf = self._buf
-        a, b = buf.find(START_SHORT, pos), buf.find(START_LONG, pos)
-        if a < 0:
-            return b
-        return a if b < 0 else min(a, b)
-
-    def _skip(self, n: int) -> None:
-        self.stats.bytes_skipped += n
-        del self._buf[:n]
 
     def next_event(self) -> bytes | NeedData:
         """The next complete, valid payload, or NEED_DATA."""
-        while self._buf:
-            pos = self._next_start(0)
-            if pos < 0:
-                self._skip(len(self._buf))
-                return NEED_DATA
-            if pos:
-                self._skip(pos)
-            kind, total = self._candidate(0)
-            if kind == "ok":
-                hl = 2 if self._buf[0] == START_SHORT else 3
-                payload = bytes(self._buf[hl:total - 3])
-                del self._buf[:total]
-                self.stats.packets += 1
-                return payload
-            if kind == "need":
-                # a bogus length may be waiting for bytes that never come: if a whole
-                # valid packet already follows, this start byte was garbage
-                later = self._find_complete(1)
-                if later < 0:
-                    return NEED_DATA
-                self.stats.framing_errors += 1
-                self._skip(later)
-                continue
-            if kind == "crc":
-                self.stats.crc_errors += 1
-            else:
-                self.stats.framing_errors += 1
-            self._skip(1)
-        return NEED_DATA
+        payload = self._next_frame()
+        return NEED_DATA if payload is None else payload
 
-    def _find_complete(self, pos: int) -> int:
-        """Offset of the first complete valid packet at or after ``pos``, or -1."""
-        while True:
-            pos = self._next_start(pos)
-            if pos < 0:
-                return -1
-            if self._candidate(pos)[0] == "ok":
-                return pos
-            pos += 1
+    def _find_start(self, buf: bytearray, i: int) -> int:
+        m = _START.search(buf, i)
+        return -1 if m is None else m.start()
+
+    def _judge(self, buf: bytearray, i: int) -> Verdict:
+        hl = 2 if buf[i] == START_SHORT else 3
+        have = len(buf) - i
+        if have < hl:
+            return NEED, hl
+        n = buf[i + 1] if hl == 2 else (buf[i + 1] << 8) | buf[i + 2]
+        if n == 0 or n > self.max_payload or (hl == 3 and n <= 255):
+            return "length", 0
+        total = hl + n + 3
+        if have < total:
+            return NEED, total
+        end = i + total
+        if buf[end - 1] != END:
+            return "end", 0
+        if crc16(buf[i + hl:end - 3]) != (buf[end - 3] << 8) | buf[end - 2]:
+            return "crc", 0
+        return OK, total
+
+    def _event(self, buf: bytearray, i: int, total: int) -> bytes:
+        self.stats.packets += 1
+        return bytes(buf[i + (2 if buf[i] == START_SHORT else 3):i + total - 3])
+
+    def _rejected(self, kind: str) -> None:
+        if kind == "crc":
+            self.stats.crc_errors += 1
+        else:
+            self.stats.framing_errors += 1
+
+    def _dropped(self) -> None:
+        self.stats.framing_errors += 1  # a bogus length: a valid packet came before it was complete
+
+    def _skipped(self, n: int) -> None:
+        self.stats.bytes_skipped += n
 
 
 # ---------------------------------------------------------------- messages

@@ -18,7 +18,9 @@ only), 0x00 none.
 :class:`PacketDecoder` turns bytes into packets, skipping and counting
 garbage, truncated packets and bad CRCs, and resynchronises on the next
 valid packet. The length field is one byte, so a packet is at most 269
-bytes and nothing larger is ever buffered beyond the last chunk fed.
+bytes and nothing larger is ever buffered beyond the last chunk fed. Those
+rules live in :mod:`hilsim.protocols.framing`, shared with VESC UART;
+decoding costs amortized linear time however the bytes are cut.
 """
 
 from __future__ import annotations
@@ -27,7 +29,9 @@ import enum
 import struct
 import zlib
 from dataclasses import dataclass, field
-from typing import Final, Sequence
+from typing import ClassVar, Final, Sequence
+
+from hilsim.protocols.framing import NEED, OK, ResyncFramer, Verdict
 
 SYNC_REQUEST: Final = b"\xf5\x5f"
 SYNC_RESPONSE: Final = b"\xf0\x0f"
@@ -42,7 +46,7 @@ FLAG_STANDARD: Final = 0x02
 STANDARD_RESPONSE_SIZE: Final = 1 + 4 * 4 + 1
 
 
-def crc32(data: bytes) -> int:
+def crc32(data: bytes | bytearray) -> int:
     return zlib.crc32(data) & 0xFFFFFFFF
 
 
@@ -85,84 +89,58 @@ class DecoderStats:
 
 
 @dataclass
-class PacketDecoder:
+class PacketDecoder(ResyncFramer[Packet]):
     """Bytes -> :class:`Packet` events (``responses``: decode ``F0 0F`` packets instead).
-    Never raises on any input."""
+    Never raises on any input.
+
+    The resynchronisation rules and their linear cost are :class:`~hilsim.protocols.framing.ResyncFramer`'s;
+    this class gives VRCSR's framing: the sync bytes, the two CRCs, what is counted.
+    """
+
+    marker_size: ClassVar[int] = len(SYNC_REQUEST)
 
     responses: bool = False
     stats: DecoderStats = field(default_factory=DecoderStats)
-    _buf: bytearray = field(default_factory=bytearray)
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf)
-
-    def receive_data(self, data: bytes) -> None:
-        self._buf += data
-
-    def _check(self, pos: int) -> tuple[str, int]:
-        buf = self._buf
-        if len(buf) - pos < HEADER_SIZE + CRC_SIZE:
-            return "need", 0
-        header = bytes(buf[pos:pos + HEADER_SIZE])
-        if struct.unpack_from("<I", buf, pos + HEADER_SIZE)[0] != crc32(header):
-            return "header", 0
-        n = header[5]
-        total = HEADER_SIZE + CRC_SIZE + (n + CRC_SIZE if n else 0)
-        if len(buf) - pos < total:
-            return "need", total
-        if n:
-            p0 = pos + HEADER_SIZE + CRC_SIZE
-            if struct.unpack_from("<I", buf, p0 + n)[0] != crc32(bytes(buf[p0:p0 + n])):
-                return "payload", total
-        return "ok", total
-
-    def _next_sync(self, pos: int) -> int:
-        return self._buf.find(SYNC_RESPONSE if self.responses else SYNC_REQUEST, pos)
-
-    def _skip(self, n: int) -> None:
-        self.stats.bytes_skipped += n
-        del self._buf[:n]
 
     def next_event(self) -> Packet | NeedData:
-        while self._buf:
-            pos = self._next_sync(0)
-            if pos < 0:
-                keep = 1 if self._buf[-1] == (SYNC_RESPONSE if self.responses else SYNC_REQUEST)[0] else 0
-                self._skip(len(self._buf) - keep)
-                return NEED_DATA
-            if pos:
-                self._skip(pos)
-            kind, total = self._check(0)
-            if kind == "ok":
-                b = self._buf
-                n = b[5]
-                payload = bytes(b[HEADER_SIZE + CRC_SIZE:HEADER_SIZE + CRC_SIZE + n])
-                pkt = Packet(b[2], b[3], b[4], payload, self.responses)
-                del self._buf[:total]
-                self.stats.packets += 1
-                return pkt
-            if kind == "need":
-                later = self._find_complete(1)
-                if later < 0:
-                    return NEED_DATA
-                self._skip(later)
-                continue
-            if kind == "header":
-                self.stats.header_crc_errors += 1
-            else:
-                self.stats.payload_crc_errors += 1
-            self._skip(1)
-        return NEED_DATA
+        pkt = self._next_frame()
+        return NEED_DATA if pkt is None else pkt
 
-    def _find_complete(self, pos: int) -> int:
-        while True:
-            pos = self._next_sync(pos)
-            if pos < 0:
-                return -1
-            if self._check(pos)[0] == "ok":
-                return pos
-            pos += 1
+    def _find_start(self, buf: bytearray, i: int) -> int:
+        return buf.find(SYNC_RESPONSE if self.responses else SYNC_REQUEST, i)
+
+    def _partial_start(self, buf: bytearray, i: int) -> int:
+        return 1 if buf[-1] == (SYNC_RESPONSE if self.responses else SYNC_REQUEST)[0] else 0
+
+    def _judge(self, buf: bytearray, i: int) -> Verdict:
+        have = len(buf) - i
+        if have < HEADER_SIZE + CRC_SIZE:
+            return NEED, HEADER_SIZE + CRC_SIZE
+        if struct.unpack_from("<I", buf, i + HEADER_SIZE)[0] != crc32(buf[i:i + HEADER_SIZE]):
+            return "header", 0
+        n = buf[i + 5]
+        total = HEADER_SIZE + CRC_SIZE + (n + CRC_SIZE if n else 0)
+        if have < total:
+            return NEED, total
+        if n:
+            p0 = i + HEADER_SIZE + CRC_SIZE
+            if struct.unpack_from("<I", buf, p0 + n)[0] != crc32(buf[p0:p0 + n]):
+                return "payload", 0
+        return OK, total
+
+    def _event(self, buf: bytearray, i: int, total: int) -> Packet:
+        p0 = i + HEADER_SIZE + CRC_SIZE
+        self.stats.packets += 1
+        return Packet(buf[i + 2], buf[i + 3], buf[i + 4], bytes(buf[p0:p0 + buf[i + 5]]), self.responses)
+
+    def _rejected(self, kind: str) -> None:
+        if kind == "header":
+            self.stats.header_crc_errors += 1
+        else:
+            self.stats.payload_crc_errors += 1
+
+    def _skipped(self, n: int) -> None:
+        self.stats.bytes_skipped += n
 
 
 # ---------------------------------------------------------------- messages
