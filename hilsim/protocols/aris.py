@@ -23,8 +23,10 @@ the beams (nothing else needs to know).
 
 from __future__ import annotations
 
+import heapq
 import math
 import struct
+from collections import deque
 from dataclasses import dataclass
 from typing import Final, Mapping, Union
 
@@ -527,15 +529,36 @@ class CommandReader:
     frame whose payload parses strictly (known type, its message, no unknown
     fields), reports the bytes before it as :class:`Junk` and goes on in sync.
     Memory: the buffer holds at most ``max_length + 4`` bytes beyond what was
-    fed since the last drain; a 4 GB length prefix allocates nothing.
+    fed since the last drain; a 4 GB length prefix allocates nothing. Out of
+    sync, the offsets still waiting for bytes are remembered (at most
+    ``max_length + 4`` of them, about 150 bytes of bookkeeping each).
+
+    Cost: amortized linear in the bytes received, however they are cut. In
+    sync, a frame still arriving is not looked at again until the stream
+    reaches its end (``_wait_end``). Out of sync, every offset is judged once
+    when its length prefix is whole: a length above the bound or a complete
+    frame that does not parse is forgotten (more bytes cannot change it), a
+    frame still incomplete is remembered with the stream offset it needs
+    (``_waiting``, a heap) and parsed once when that offset arrives;
+    ``_scan`` is how far offsets were judged. Offsets are stream offsets
+    (``_base`` is the offset of ``_buf[0]``), untouched when consumed bytes
+    are dropped.
     """
 
     def __init__(self, max_length: int = MAX_COMMAND_LENGTH) -> None:
         self.max_length = int(max_length)
         self._buf = bytearray()
         self._pos = 0
+        self._base = 0  # stream offset of _buf[0]
         self._synced = True
         self._pending: list[CommandEvent] = []
+        self._wait_end = 0  # in sync: the frame at _pos is incomplete until the stream reaches this offset
+        # out of sync: offsets below _scan are judged; the incomplete ones as (offset needed, offset) in
+        # _waiting, and in ascending order in _waiting_order (those still in _waiting_set are incomplete)
+        self._scan = 0
+        self._waiting: list[tuple[int, int]] = []
+        self._waiting_order: deque[int] = deque()
+        self._waiting_set: set[int] = set()
         self.errors = 0
         self.commands = 0
 
@@ -546,6 +569,7 @@ class CommandReader:
     def receive_data(self, data: bytes) -> None:
         if self._pos and 2 * self._pos >= len(self._buf):
             del self._buf[: self._pos]
+            self._base += self._pos
             self._pos = 0
         self._buf += data
 
@@ -567,7 +591,7 @@ class CommandReader:
 
     def _next_synced(self) -> CommandEvent | None:
         buf, pos = self._buf, self._pos
-        if len(buf) - pos < 4:
+        if len(buf) - pos < 4 or self._base + len(buf) < self._wait_end:
             return None
         (length,) = struct.unpack_from(">I", buf, pos)
         if length > self.max_length:
@@ -576,6 +600,7 @@ class CommandReader:
             return Oversize(length)
         end = pos + 4 + length
         if len(buf) < end:
+            self._wait_end = self._base + end
             return None
         ev = parse_command(bytes(buf[pos + 4 : end]))
         if isinstance(ev, BadCommand):
@@ -586,30 +611,62 @@ class CommandReader:
         return ev
 
     def _resync(self) -> CommandEvent | None:
-        buf, start = self._buf, self._pos
-        first_pending = -1
-        for j in range(start, len(buf) - 3):
-            (length,) = struct.unpack_from(">I", buf, j)
-            if length > self.max_length:
+        """The first offset (from _pos) holding a complete frame that parses strictly.
+
+        Same outcome as trying every offset from _pos on every call; only
+        offsets whose frame became complete and offsets not judged before are
+        looked at (see the class docstring).
+        """
+        buf, base, start = self._buf, self._base, self._base + self._pos
+        stream_end = base + len(buf)
+        waiting, waiting_set = self._waiting, self._waiting_set
+        best, best_end = -1, 0
+        best_ev: CommandEvent | None = None
+        while waiting and waiting[0][0] <= stream_end:
+            end, j = heapq.heappop(waiting)
+            waiting_set.discard(j)
+            if j < start:
                 continue
-            end = j + 4 + length
-            if end > len(buf):
-                if first_pending < 0:
-                    first_pending = j
-                continue
-            ev = parse_command(bytes(buf[j + 4 : end]), strict=True)
-            if isinstance(ev, BadCommand):
-                continue
+            ev = parse_command(bytes(buf[j + 4 - base : end - base]), strict=True)
+            if not isinstance(ev, BadCommand) and (best < 0 or j < best):
+                best, best_end, best_ev = j, end, ev
+        if best < 0:
+            # offsets below _scan are not commands or still incomplete: judge the new ones in order
+            j = max(self._scan, start)
+            while j <= stream_end - 4:
+                (length,) = struct.unpack_from(">I", buf, j - base)
+                if length <= self.max_length:
+                    end = j + 4 + length
+                    if end > stream_end:
+                        heapq.heappush(waiting, (end, j))
+                        self._waiting_order.append(j)
+                        waiting_set.add(j)
+                    else:
+                        ev = parse_command(bytes(buf[j + 4 - base : end - base]), strict=True)
+                        if not isinstance(ev, BadCommand):
+                            best, best_end, best_ev = j, end, ev
+                            break
+                j += 1
+            self._scan = j
+        if best_ev is not None:
+            # every offset remembered lies before best_end (it was judged when the stream ended
+            # before best_end), where the reader goes on in sync: forget them
+            waiting.clear()
+            self._waiting_order.clear()
+            waiting_set.clear()
             self._synced = True
-            self._pos = end
-            if j > start:
-                self._pending.append(ev)
+            self._pos = best_end - base
+            if best > start:
+                self._pending.append(best_ev)
                 self.commands += 1
-                return Junk(j - start)
-            return ev
-        keep_from = first_pending if first_pending >= 0 else max(start, len(buf) - 3)
+                return Junk(best - start)
+            return best_ev
+        order = self._waiting_order
+        while order and (order[0] < start or order[0] not in waiting_set):
+            order.popleft()
+        keep_from = order[0] if order else max(start, stream_end - 3)
         if keep_from > start:
-            self._pos = keep_from
+            self._pos = keep_from - base
             return Junk(keep_from - start)
         return None
 
