@@ -17,9 +17,9 @@ or fails.
     python benchmarks/bench_decoders.py [--bytes 200000] [--seconds 5]
     python benchmarks/bench_decoders.py --modules DIR   # vesc_uart.py, vrcsr.py, aris.py from DIR
 
-``--modules`` measures other copies of the codec modules, e.g. the previous
-commit's: ``mkdir /tmp/old && for m in vesc_uart vrcsr aris; do git show
-HEAD~1:hilsim/protocols/$m.py > /tmp/old/$m.py; done``.
+``--modules`` measures other copies of the codec modules, e.g. those before the
+linear-time framing (commit 2b24ace): ``mkdir /tmp/old && for m in vesc_uart vrcsr
+aris; do git show 2b24ace:hilsim/protocols/$m.py > /tmp/old/$m.py; done``.
 """
 
 from __future__ import annotations
