@@ -53,14 +53,14 @@ if str(ROOT) not in sys.path:
 
 DEVICES = """
 [[devices]]
-name = "depth"
+name = "bench_depth"
 protocol = "modbus-keller"
 transport = ["tcp", "rtu"]
 baudrate = 115200
 max_clients = 64
 
 [[devices]]
-name = "depth_unlimited"
+name = "bench_depth_unlimited"
 protocol = "modbus-keller"
 transport = ["tcp"]
 max_clients = 64
@@ -244,9 +244,9 @@ def main() -> None:
             host, port = e["address"].rsplit(":", 1)
             return host, int(port)
 
-        modbus = addr("modbus-keller", device="depth")
-        unlimited = addr("modbus-keller", device="depth_unlimited")
-        rtu_path = next(e["address"] for e in eps if e["protocol"] == "modbus-keller" and e["transport"] == "pty")
+        modbus = addr("modbus-keller", device="bench_depth")
+        unlimited = addr("modbus-keller", device="bench_depth_unlimited")
+        rtu_path = next(e["address"] for e in eps if e["device"] == "bench_depth" and e["transport"] == "pty")
         print(f"hilsim Modbus benchmark: {platform.python_implementation()} {platform.python_version()}, "
               f"{os.cpu_count()} CPUs, {platform.machine()}; bridge pid {proc.pid}; {args.seconds:g} s per run"
               + ("" if args.clock_margin_ms is None else f"; clock async_margin {args.clock_margin_ms:g} ms"))
