@@ -123,3 +123,22 @@ def test_with_a_doc_the_refusal_is_a_config_error_at_the_key(doc):
         check_profile_ref("sonars", "/abs/sonar", doc.path.parent, doc=doc, key="sensors.sonar.profile")
     assert ei.value.line == line(TEXT, 'profile = "didson_hf"') and ei.value.key == "sensors.sonar.profile"
     assert "is absolute" in str(ei.value)
+
+
+@pytest.mark.parametrize("ref", ["../../outside/t200", "/etc/t200"])
+def test_a_vehicle_profiles_thruster_reference_is_refused_at_its_line(tmp_path, ref):
+    """A vehicle profile is data too: a thruster profile reference leaving its folder is refused with
+    the vehicle file's line and key."""
+    from hilsim.sim.vehicle import load_vehicle_profile
+
+    text = data_path("devices", "vehicles", "cyclops.toml").read_text()
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.strip().startswith("profile =")
+             and "[thrusters]" in "\n".join(lines[:k]))
+    lines[i] = f'profile = "{ref}"'
+    p = tmp_path / "myvehicle.toml"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError) as e:
+        load_vehicle_profile(p)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}:{i + 1}: [thrusters.profile]"), msg

@@ -231,7 +231,8 @@ def _load_thrusters(doc: Doc, path: Path) -> tuple[tuple[Thruster, ...], float |
     def profile(name: str, key: str) -> ThrusterProfile:
         if name not in cache:
             try:
-                cache[name] = load_thruster_profile(find_profile("thrusters", name, base=path.parent))
+                cache[name] = load_thruster_profile(find_profile("thrusters", name, base=path.parent,
+                                                                 doc=doc, key=key))
             except FileNotFoundError as exc:
                 raise doc.error(key, str(exc)) from None
         return cache[name]
@@ -251,7 +252,8 @@ def _load_thrusters(doc: Doc, path: Path) -> tuple[tuple[Thruster, ...], float |
         name = str(u.get("profile", th.get("profile", "")))
         if not name:
             raise doc.error(where, "no thruster profile: set thrusters.profile or this unit's profile")
-        out.append(Thruster(str(u.get("name", f"t{i}")), pos, d / np.linalg.norm(d), profile(name, where)))
+        key = f"{where}.profile" if "profile" in u else "thrusters.profile"
+        out.append(Thruster(str(u.get("name", f"t{i}")), pos, d / np.linalg.norm(d), profile(name, key)))
     return tuple(out), voltage
 
 
