@@ -26,7 +26,6 @@ rate as applied, receiver gain added to the profile's gain.
 from __future__ import annotations
 
 import asyncio
-import errno
 import ipaddress
 import logging
 import math
@@ -36,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint, RenderedFrame
-from hilsim.devices.sonar_pinger import ClientPinger, PingEntry
+from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, open_udp, serve_vendor_port
 from hilsim.links.tcp import Client, TcpServer
 from hilsim.protocols import aris as ar
 from hilsim.protocols.aris_file import ArisWriter
@@ -98,20 +97,8 @@ class ArisDevice(Device):
     # -- lifecycle -----------------------------------------------------------------
 
     async def start(self) -> list[Endpoint]:
-        port = int(self.options["port"])
-        self.server = self._server(port)
-        try:
-            host, port = await self.server.start()
-        except OSError as exc:
-            if exc.errno != errno.EADDRINUSE or port == 0:
-                raise
-            log.warning("%s: TCP port %d is taken; serving on a free port instead", self.name, port)
-            self.server = self._server(0)
-            host, port = await self.server.start()
-        loop = asyncio.get_running_loop()
-        transport, _ = await loop.create_datagram_endpoint(asyncio.DatagramProtocol, local_addr=(self.ctx.bind, 0),
-                                                           allow_broadcast=True)
-        self._udp = transport
+        self.server, host, port = await serve_vendor_port(self.name, self._server, int(self.options["port"]))
+        self._udp = await open_udp(self.ctx.bind)
         interval = float(self.options["beacon_interval_s"])
         self._beacon(0.0)
         self._events.append(self.ctx.scheduler.add(f"{self.name}.beacon", interval, self._beacon, priority=30,

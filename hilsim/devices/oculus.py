@@ -21,7 +21,6 @@ configuration share one render per ping.
 from __future__ import annotations
 
 import asyncio
-import errno
 import logging
 import math
 from typing import Any
@@ -29,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint, RenderedFrame
-from hilsim.devices.sonar_pinger import ClientPinger, PingEntry
+from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, open_udp, serve_vendor_port
 from hilsim.links.tcp import Client, TcpServer
 from hilsim.protocols import oculus as oc
 
@@ -91,23 +90,11 @@ class OculusDevice(Device):
     # -- lifecycle -----------------------------------------------------------------
 
     async def start(self) -> list[Endpoint]:
-        port = int(self.options["port"])
         frame = oc.PING_V2_SIZE + 4 * 512 * (self.max_rows + 1)
-        self.server = self._server(port, frame)
-        try:
-            host, port = await self.server.start()
-        except OSError as exc:
-            if exc.errno != errno.EADDRINUSE or port == 0:
-                raise
-            log.warning("%s: TCP port %d is taken; serving on a free port instead (clients that "
-                        "only try %d will not find it)", self.name, port, port)
-            self.server = self._server(0, frame)
-            host, port = await self.server.start()
+        self.server, host, port = await serve_vendor_port(self.name, lambda p: self._server(p, frame),
+                                                          int(self.options["port"]))
         self.status_ip = str(self.options["status_ip"] or (host if host not in ("0.0.0.0", "") else "127.0.0.1"))
-        loop = asyncio.get_running_loop()
-        transport, _ = await loop.create_datagram_endpoint(asyncio.DatagramProtocol, local_addr=(self.ctx.bind, 0),
-                                                           allow_broadcast=True)
-        self._udp = transport
+        self._udp = await open_udp(self.ctx.bind)
         interval = float(self.options["status_interval_s"])
         self._send_status(0.0)
         self._status_event = self.ctx.scheduler.add(f"{self.name}.status", interval, self._send_status,

@@ -20,14 +20,41 @@ lost that way are counted in ``busy_skips``.
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 from dataclasses import dataclass, field
 from typing import Any, Awaitable, Callable, Hashable
 
 from hilsim.devices.base import DeviceContext, RenderedFrame, RenderFailed
+from hilsim.links.tcp import TcpServer
 from hilsim.sim.sonar_profile import SonarSettings
 
 log = logging.getLogger(__name__)
+
+
+async def serve_vendor_port(name: str, make: Callable[[int], TcpServer], port: int
+                            ) -> tuple[TcpServer, str, int]:
+    """Start ``make(port)``; a vendor sonar's fixed port that is taken (another bridge, the real
+    sonar's software) falls back to a free port with a warning, as the endpoints then show.
+    Returns the server and its bound host and port."""
+    server = make(port)
+    try:
+        host, bound = await server.start()
+    except OSError as exc:
+        if exc.errno != errno.EADDRINUSE or port == 0:
+            raise
+        log.warning("%s: TCP port %d is taken; serving on a free port instead (clients that only try %d "
+                    "will not find it)", name, port, port)
+        server = make(0)
+        host, bound = await server.start()
+    return server, host, bound
+
+
+async def open_udp(bind: str) -> asyncio.DatagramTransport:
+    """A UDP socket on ``bind`` (any port) for a sonar's status or beacon datagrams."""
+    transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+        asyncio.DatagramProtocol, local_addr=(bind, 0), allow_broadcast=True)
+    return transport
 
 
 @dataclass

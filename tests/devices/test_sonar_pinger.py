@@ -101,3 +101,30 @@ def test_a_renderer_slower_than_the_period_skips_whole_periods_without_a_backlog
     assert abs(got[0] - 14.0 / 0.7) <= 2, got[0]
     starts = [r[0] for r in renders]
     assert all(b - a >= 0.7 - 1e-6 for a, b in zip(starts, starts[1:]))
+
+
+def test_a_taken_vendor_port_falls_back_to_a_free_one(caplog):
+    """Oculus and ARIS listen on their vendor's fixed port; if something holds it, the device serves
+    on a free port with a warning (the endpoints show where) instead of not starting."""
+    import socket
+
+    from hilsim.devices.sonar_pinger import serve_vendor_port
+    from hilsim.links.tcp import TcpServer
+
+    async def main():
+        holder = socket.socket()
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        taken = holder.getsockname()[1]
+        try:
+            server, host, port = await serve_vendor_port("sonar", lambda p: TcpServer("sonar", port=p), taken)
+            assert host == "127.0.0.1" and port not in (0, taken)
+            r, w = await asyncio.open_connection(host, port)      # it serves there
+            w.close()
+            await server.close()
+        finally:
+            holder.close()
+
+    with caplog.at_level("WARNING"):
+        asyncio.run(main())
+    assert "is taken; serving on a free port instead" in caplog.text
