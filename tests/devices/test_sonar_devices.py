@@ -27,6 +27,7 @@ import pytest
 
 from hilsim.protocols import aris as ar
 from hilsim.protocols import oculus as oc
+from tests.runtime.bridge_helpers import recv_exact
 
 pytest.importorskip("hilsim.runtime.bridge")
 HAVE_DDF = importlib.util.find_spec("hilsim.devices.ddf_stream") is not None
@@ -117,16 +118,6 @@ def running(tmp_path_factory):
     th.join(30)
     status_sock.close()
     beacon_sock.close()
-
-
-def recv_exact(sock: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise EOFError(f"closed after {len(buf)} of {n} bytes")
-        buf += chunk
-    return bytes(buf)
 
 
 # ------------------------------------------------------------------ clients
