@@ -22,96 +22,13 @@ from __future__ import annotations
 
 import difflib
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Awaitable, Callable, ClassVar, Mapping, Protocol, TypeVar
+from typing import Any, ClassVar, Mapping
 
-if TYPE_CHECKING:
-    from hilsim.runtime.scheduler import Scheduler, VehicleLoop
-    from hilsim.sim.scenario import Scenario
-    from hilsim.sim.sonar import SonarFrame
-    from hilsim.sim.sonar_profile import SonarProfile, SonarSettings
-    from hilsim.sim.state import VehicleState
+from hilsim.devices.context import DeviceContext, Endpoint, Periodic, RenderedFrame, RenderFailed, VehicleView
 
-T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class Endpoint:
-    """Where a client reaches a device.
-
-    protocol: short lower-case name (``ddf-stream``, ``vesc-can``, ``modbus-keller``);
-    transport: ``tcp``, ``udp``, ``pty``, ``socketcand``, ``slcan``, ``socketcan``, ...;
-    address: ``"127.0.0.1:PORT"`` for TCP/UDP, a path for a pty; extra: what else a
-    client needs (``{"channel": "can0"}``, ``{"baudrate": 115200}``).
-    """
-
-    device: str
-    protocol: str
-    transport: str
-    address: str
-    extra: Mapping[str, Any] = field(default_factory=dict)
-
-    def to_json(self) -> dict[str, Any]:
-        return {"device": self.device, "protocol": self.protocol, "transport": self.transport,
-                "address": self.address, **dict(self.extra)}
-
-
-@dataclass(frozen=True)
-class RenderedFrame:
-    """A sonar frame rendered in the worker, with the state it was pinged at.
-
-    frame: the simulator's frame (``image`` (n_samples, n_beams) uint8, ``intensity``
-    float, ``ranges``, ``azimuths``, beams ascending from port); state: the vehicle
-    state at the ping; render_s: [s] wall time the render took; altitude: [m] from the
-    vehicle straight down to the first surface (inf if none).
-    """
-
-    frame: "SonarFrame"
-    state: "VehicleState"
-    render_s: float
-    altitude: float = float("inf")
-
-
-class RenderFailed(RuntimeError):
-    """The render worker could not produce a frame (it crashed or hung and is being restarted)."""
-
-
-class DeviceContext(Protocol):
-    """What the bridge gives every device."""
-
-    scenario: "Scenario"
-    scheduler: "Scheduler"
-    vehicle: "VehicleLoop"          # .state: VehicleState, .thrusters: ThrusterSet | None
-    bind: str                       # host servers listen on (127.0.0.1 unless told otherwise)
-    broadcast: str                  # destination of UDP status/beacons (loopback by default)
-    run_dir: Path                   # default folder for pty symlinks
-    seed: int
-    fast: bool                      # virtual (as-fast-as-possible) clock
-
-    def now(self) -> float:
-        """[s] simulation time."""
-
-    def wall_time(self, sim_time: float) -> float:
-        """UNIX time [s] stamped on the wire for a simulation time [s]."""
-
-    def sonar_profile(self, name: str) -> "SonarProfile":
-        """Load a sonar profile by reference (``didson_hf``, ``sonars/oculus_m750d``)."""
-
-    async def render(self, mount: str, profile: str, settings: "SonarSettings | None" = None, *,
-                     frame_index: int = 0) -> RenderedFrame:
-        """Render a sonar frame from the sensor mount ``mount`` at the current state, with the
-        sonar profile ``profile`` and ``settings``; raises :class:`RenderFailed`."""
-
-    def pty_path(self, option: "str | Path | None", default: str) -> Path:
-        """A device's pty symlink path: inside the run folder (absolute paths and ``..`` refused)."""
-
-    def output_path(self, option: "str | Path") -> Path:
-        """A file a scenario asks a device to write: inside the scenario's folder."""
-
-    async def shared(self, key: tuple[Any, ...], factory: Callable[[], Awaitable[T]]) -> T:
-        """A link shared by several devices (a CAN bus): created once by ``factory``, closed
-        by the bridge at shutdown (it must have ``async close()``)."""
+__all__ = ["Device", "DeviceContext", "Endpoint", "OptionError", "Periodic", "RenderedFrame", "RenderFailed",
+           "VehicleView"]
 
 
 class OptionError(ValueError):

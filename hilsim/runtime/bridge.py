@@ -26,7 +26,8 @@ import numpy as np
 
 from hilsim.config import ConfigError, Doc, load_toml
 from hilsim.devices import device_class
-from hilsim.devices.base import Device, Endpoint, OptionError, RenderedFrame, RenderFailed
+from hilsim.devices.base import Device, Endpoint, OptionError, Periodic, RenderedFrame, RenderFailed
+from hilsim.runtime.observe import Observers
 from hilsim.resources import find_profile
 from hilsim.runtime.clock import RealTimeClock, ScaledClock, VirtualClock
 from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, Scheduler, VehicleLoop
@@ -35,6 +36,7 @@ from hilsim.sim.scenario import Scenario, load_scenario
 from hilsim.sim.sonar_profile import SonarProfile, SonarSettings, load_sonar_profile
 from hilsim.sim.state import VehicleState
 from hilsim.sim.vehicle import Current, Vehicle, load_vehicle_profile
+from hilsim.sim.world import World
 from hilsim.runtime.timeline import Timeline
 
 log = logging.getLogger("hilsim.bridge")
@@ -88,6 +90,8 @@ class Bridge:
         self._started = False
         self._closed = False
         self._wall0 = 0.0
+        self._world: World | None = None
+        self.observers = Observers()
 
     # -- building --------------------------------------------------------------
 
@@ -244,6 +248,25 @@ class Bridge:
 
     # -- DeviceContext ---------------------------------------------------------
 
+    @property
+    def world(self) -> World:
+        """The main process's ray-cast scene (short queries: DVL beams, altimeters, contacts);
+        built on first use, kept in step with the timeline's object moves."""
+        if self._world is None:
+            self._world = self.scenario.build_world()
+        return self._world
+
+    def every(self, name: str, period: float, callback: Callable[[float], Any], *, offset: float = 0.0,
+              priority: int = 20, tolerance: float | None = None) -> Periodic:
+        return _Handle(self.scheduler, self.scheduler.add(name, period, callback, offset=offset,
+                                                          priority=priority, tolerance=tolerance))
+
+    def observed(self, topic: str) -> bool:
+        return self.observers.observed(topic)
+
+    def publish(self, topic: str, message: Mapping[str, Any]) -> None:
+        self.observers.publish(topic, message)
+
     def now(self) -> float:
         return self.vehicle.state.time if self.fast else max(self.vehicle.state.time, self.scheduler.clock.now())
 
@@ -317,6 +340,18 @@ class Bridge:
         log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d, skipped %d | %s", st["time_s"],
                  st["depth_m"], st["heading_deg"], st["late_ticks"], st["skipped_ticks"],
                  " ".join(parts) or "no devices")
+
+
+class _Handle:
+    """A :class:`~hilsim.devices.context.Periodic` over a scheduler event."""
+
+    __slots__ = ("_scheduler", "event")
+
+    def __init__(self, scheduler: Scheduler, event: Any) -> None:
+        self._scheduler, self.event = scheduler, event
+
+    def cancel(self) -> None:
+        self._scheduler.remove(self.event)
 
 
 def path_inside(base: Path, rel: str | os.PathLike[str], what: str = "path", hint: str = "") -> Path:
