@@ -101,7 +101,7 @@ def drain(decoder: StreamDecoder[E], data: bytes = b"", limit: int = 1_000_000) 
         ev = decoder.next_event()
         if ev is NEED_DATA:
             return
-        yield ev  # type: ignore[misc]
+        yield ev
     raise RuntimeError(f"{type(decoder).__name__}: no NEED_DATA after {limit} events")
 
 

@@ -32,7 +32,6 @@ raises ValueError.
 from __future__ import annotations
 
 import calendar
-import enum
 import math
 import numbers
 import struct
@@ -42,6 +41,8 @@ from typing import Final, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
+
+from hilsim.protocols.codec import NEED_DATA, NeedData
 
 # --------------------------------------------------------------- constants
 
@@ -457,13 +458,6 @@ def decode_frame(data: bytes, numbeams: int, samplesperchannel: int) -> tuple[Fr
 # ------------------------------------------------------- stream reader/writer
 
 
-class NeedData(enum.Enum):
-    """Sentinel type: the decoder needs more bytes before the next event."""
-
-    NEED_DATA = "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Final, Sequence, Union
 
+from hilsim.protocols import codec
 from hilsim.protocols.ddf import (
     LENGTH_CODE_MAX,
     LENGTH_CODE_MIN,
@@ -65,11 +66,10 @@ class Ping:
 
 
 @dataclass(frozen=True)
-class BadCommand:
+class BadCommand(codec.BadInput):
     """A line that is not a valid command; answer ``ERR <reason>``, go on."""
 
-    reason: str
-    line: bytes  # the offending line (at most MAX_LINE_BYTES of it)
+    line: bytes = b""  # the offending line (at most MAX_LINE_BYTES of it)
 
 
 Command = Union[SetRate, SetWindow, SetGain, Ping]

@@ -24,7 +24,6 @@ return a :class:`BadMessage` for bytes that are not a valid message, and
 
 from __future__ import annotations
 
-import enum
 import math
 import struct
 from dataclasses import dataclass
@@ -32,6 +31,9 @@ from typing import Final, Union
 
 import numpy as np
 import numpy.typing as npt
+
+from hilsim.protocols import codec
+from hilsim.protocols.codec import NEED_DATA, NeedData
 
 # --------------------------------------------------------------- constants
 
@@ -273,25 +275,31 @@ class OtherMessage:
 
 
 @dataclass(frozen=True)
-class BadMessage:
+class BadMessage(codec.BadInput):
     """A message with a valid frame whose contents are not valid; counted, then ignored."""
 
-    reason: str
     msg_id: int = -1
 
 
-@dataclass(frozen=True)
-class Junk:
+@dataclass(frozen=True, init=False)
+class Junk(codec.Junk):
     """``n_bytes`` skipped while looking for the next ``53 4F`` id."""
 
-    n_bytes: int
+    def __init__(self, n_bytes: int, reason: str = "bytes before the next 53 4F id") -> None:
+        object.__setattr__(self, "reason", reason)
+        object.__setattr__(self, "n_bytes", n_bytes)
 
 
-@dataclass(frozen=True)
-class Oversize:
-    """A header announcing ``payload_size`` beyond the reader's bound; only its id was dropped."""
+@dataclass(frozen=True, init=False)
+class Oversize(codec.Oversize):
+    """A header announcing ``payload_size`` (``length``) beyond the reader's bound; only its id was dropped."""
 
-    header: Header
+    header: Header = Header(0, 0)
+
+    def __init__(self, header: Header, reason: str = "payload size beyond the reader's bound") -> None:
+        object.__setattr__(self, "reason", reason)
+        object.__setattr__(self, "length", header.payload_size)
+        object.__setattr__(self, "header", header)
 
 
 Message = Union[Fire, PingResult, OtherMessage, BadMessage]
@@ -519,11 +527,6 @@ def encode_message(msg_id: int, payload: bytes = b"", version: int = 0, src_devi
 # -------------------------------------------------------------------- stream
 
 
-class NeedData(enum.Enum):
-    NEED_DATA = "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 @dataclass

@@ -30,12 +30,13 @@ for a frame from the bus (empty while the channel is closed).
 
 from __future__ import annotations
 
-import enum
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Final, Union
 
+from hilsim.protocols import codec
 from hilsim.protocols.can import CanFrame
+from hilsim.protocols.codec import NEED_DATA, NeedData
 
 OK: Final = b"\r"
 ERROR: Final = b"\a"
@@ -45,11 +46,6 @@ BITRATES: Final[dict[int, int]] = {0: 10_000, 1: 20_000, 2: 50_000, 3: 100_000, 
 _HEX: Final = frozenset(b"0123456789abcdefABCDEF")
 
 
-class NeedData(enum.Enum):
-    NEED_DATA = "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 @dataclass(frozen=True)
@@ -75,11 +71,10 @@ class BitrateSet:
 
 
 @dataclass(frozen=True)
-class BadLine:
+class BadLine(codec.BadInput):
     """A line that is not a valid command (answered BEL)."""
 
-    reason: str
-    line: bytes
+    line: bytes = b""
 
 
 Event = Union[Transmit, Opened, Closed, BitrateSet, BadLine]

@@ -26,18 +26,15 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Final, Union
 
+from hilsim.protocols import codec
 from hilsim.protocols.can import CanFrame
+from hilsim.protocols.codec import NEED_DATA, NeedData
 
 MAX_MESSAGE: Final = 256
 HI: Final = b"< hi >"
 OK: Final = b"< ok >"
 
 
-class NeedData(enum.Enum):
-    NEED_DATA = "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 class Mode(enum.Enum):
@@ -62,9 +59,10 @@ class SendFrame:
 
 
 @dataclass(frozen=True)
-class BadMessage:
-    reason: str
-    text: str
+class BadMessage(codec.BadInput):
+    """A message that is not a valid command here (answered ``< error ... >``); ``text``: its words."""
+
+    text: str = ""
 
 
 Event = Union[BusOpened, RawModeEntered, SendFrame, BadMessage]

@@ -30,6 +30,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any, Final, Union
 
+from hilsim.protocols import codec
 from hilsim.protocols.can import CanFrame
 
 COMMANDS: Final[dict[str, int]] = {
@@ -78,11 +79,10 @@ class Status5:
 
 
 @dataclass(frozen=True)
-class BadFrame:
+class BadFrame(codec.BadInput):
     """A frame with a VESC identifier whose contents cannot be a VESC packet."""
 
-    reason: str
-    frame: CanFrame
+    frame: CanFrame = CanFrame(0, b"")
 
 
 VescMessage = Union[VescCommand, Status1, Status4, Status5]

@@ -23,13 +23,13 @@ amortized linear time however the bytes are cut.
 from __future__ import annotations
 
 import binascii
-import enum
 import math
 import re
 import struct
 from dataclasses import dataclass, field
 from typing import Final, Union
 
+from hilsim.protocols.codec import NEED_DATA, NeedData
 from hilsim.protocols.framing import NEED, OK, ResyncFramer, Verdict
 
 START_SHORT: Final = 0x02
@@ -64,11 +64,6 @@ def frame(payload: bytes) -> bytes:
     return head + payload + crc16(payload).to_bytes(2, "big") + bytes([END])
 
 
-class NeedData(enum.Enum):
-    NEED_DATA = "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 @dataclass

@@ -25,12 +25,12 @@ decoding costs amortized linear time however the bytes are cut.
 
 from __future__ import annotations
 
-import enum
 import struct
 import zlib
 from dataclasses import dataclass, field
 from typing import ClassVar, Final, Sequence
 
+from hilsim.protocols.codec import NEED_DATA, NeedData
 from hilsim.protocols.framing import NEED, OK, ResyncFramer, Verdict
 
 SYNC_REQUEST: Final = b"\xf5\x5f"
@@ -73,11 +73,6 @@ class Packet:
         return out
 
 
-class NeedData(enum.Enum):
-    NEED_DATA = "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 @dataclass

@@ -128,7 +128,7 @@ def test_vrcsr_crafted_input_byte_at_a_time_costs_linear_crc_work(monkeypatch):
 
 def test_aris_crafted_input_byte_at_a_time_costs_linear_parse_work(monkeypatch):
     parse = Counter(ar.parse_command, 2 * len(ARIS_CRAFTED), lambda payload, *_, **__: 1)  # limit: parses
-    monkeypatch.setattr(ar, "parse_command", parse)
+    monkeypatch.setattr(ar.commands, "parse_command", parse)  # where CommandReader looks it up
     r = ar.CommandReader()
     events = feed(r, None, ARIS_CRAFTED, 1)
     assert events and all(isinstance(e, (ar.Oversize, ar.Junk, ar.BadCommand)) for e in events)
@@ -203,7 +203,7 @@ def test_a_waiting_candidate_is_not_judged_again_until_its_bytes_are_there(cls, 
 
 def test_aris_in_sync_frame_is_not_parsed_until_complete(monkeypatch):
     parse = Counter(ar.parse_command, 10, lambda payload, *_, **__: 1)
-    monkeypatch.setattr(ar, "parse_command", parse)
+    monkeypatch.setattr(ar.commands, "parse_command", parse)  # where CommandReader looks it up
     r = ar.CommandReader()
     wire = ar.encode_command(ar.SetAcoustics(ar.AcousticSettings(cookie=5)))
     assert feed(r, None, wire[:-1], 1) == [] and parse.calls == 0
