@@ -7,8 +7,17 @@ decides what bytes mean; this module only moves them. Guarantees:
   of one, and never slows the others: each client has a queue of at most
   ``queue_len`` messages, a transport buffer capped at ``write_buffer`` bytes
   and (with ``sndbuf``) a capped kernel send buffer, so memory per client is bounded;
-* at most ``max_clients`` connections; more are refused with a log line (at most
-  one a second per server, with how many were not shown, so a flood cannot flood the log);
+* at most ``max_clients`` connections. When the server is full, a newcomer evicts the
+  client that has gone longest without progress, if that one has been so for more than
+  ``evict_grace`` [s]: *stalled* (a message to it has waited on the peer that long: it does
+  not read) or, on a ``command_channel`` (clients are expected to send: requests, pings,
+  fire messages), *idle* (nothing received from it and nothing taken by it that long). A
+  stream whose clients only listen (``command_channel=False``) never counts a listener it has
+  nothing to send as idle. Each eviction is logged with its reason and counted
+  (``LinkStats.evicted``). A server full of clients making progress refuses the newcomer, with
+  a log line (at most one a second per server, with how many were not shown, so a flood cannot
+  flood the log). So a client that crashed without closing, or a script that connects and
+  hangs, holds a slot only while no one else needs it;
 * one client blasting bytes cannot starve the others: the loop serves everyone
   else between two chunks of one client's input; a client whose chunks cost its
   (synchronous) ``on_data`` more than ``CHUNK_TIME`` of CPU is read in smaller ones
@@ -42,6 +51,7 @@ log = logging.getLogger(__name__)
 
 CHUNK_TIME = 0.002  # [s] of CPU: a client whose chunk of input took longer is read in smaller ones
 MIN_READ = 256      # [bytes]
+EVICT_GRACE = 5.0   # [s] a client without progress this long may be evicted for a newcomer (full server)
 
 
 @dataclass
@@ -56,6 +66,7 @@ class LinkStats:
     throttled: int = 0          # clients read more slowly for the CPU their input took
     idle_drops: int = 0         # clients dropped after idle_timeout without traffic either way
     stall_drops: int = 0        # clients dropped after stall_timeout without reading
+    evicted: int = 0            # clients evicted (stalled or idle past evict_grace) to admit a newcomer
 
 
 @dataclass(eq=False)
@@ -113,6 +124,7 @@ class TcpServer:
                  read_size: int = 4096, idle_timeout: float | None = None,
                  stall_timeout: float | None = 30.0, keepalive: float | None = 30.0, sndbuf: int | None = None,
                  cpu_share: float | None = 0.25, cpu_burst: float = 0.05,
+                 evict_grace: float | None = EVICT_GRACE, command_channel: bool = True,
                  on_connect: OnConnect | None = None, on_data: OnData | None = None,
                  on_disconnect: OnDisconnect | None = None) -> None:
         self.name = name
@@ -128,6 +140,8 @@ class TcpServer:
         self.sndbuf = sndbuf
         self.cpu_share = cpu_share
         self.cpu_burst = cpu_burst
+        self.evict_grace = evict_grace if evict_grace is not None and evict_grace > 0 else None
+        self.command_channel = command_channel
         self._last_refusal_log = -1e9
         self._unlogged_refusals = 0
         self.on_connect = on_connect
@@ -217,7 +231,7 @@ class TcpServer:
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
         peer_s = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
-        if len(self.clients) >= self.max_clients:
+        if len(self.clients) >= self.max_clients and not self._evict_for(peer_s):
             self.stats.refused += 1
             self._log_refusal(peer_s)
             writer.transport.abort()
@@ -300,6 +314,39 @@ class TcpServer:
                              self.name, c.peer, now - c.last_active)
                     self._drop(c)
 
+    def stale_for(self, c: Client, now: float | None = None) -> tuple[float, str]:
+        """How long [s] client ``c`` has gone without progress, and why: ``"stalled"`` (a message to
+        it has waited on the peer since then), ``"idle"`` (command channel: nothing received from it
+        and nothing taken by it since then); ``(0.0, "")`` while it makes progress."""
+        now = time.monotonic() if now is None else now
+        if c.writing_since is not None:
+            return now - c.writing_since, "stalled"
+        if self.command_channel and c.queue.empty():
+            return now - c.last_active, "idle"
+        return 0.0, ""
+
+    def _evict_for(self, newcomer: str) -> bool:
+        """Full server: evict the client longest without progress if that exceeds ``evict_grace``;
+        True if a slot was freed."""
+        if self.evict_grace is None:
+            return False
+        now = time.monotonic()
+        victim: Client | None = None
+        worst, why = self.evict_grace, ""
+        for c in self.clients.values():
+            age, reason = self.stale_for(c, now)
+            if age > worst:
+                victim, worst, why = c, age, reason
+        if victim is None:
+            return False
+        self.stats.evicted += 1
+        what = ("has taken nothing it was sent" if why == "stalled"
+                else "sent nothing and was sent nothing")
+        log.warning("%s: client %s evicted (%s: %s for %.1f s) to admit %s: client limit %d reached",
+                    self.name, victim.peer, why, what, worst, newcomer, self.max_clients)
+        self._drop(victim)
+        return True
+
     def _log_refusal(self, peer: str) -> None:
         now = time.monotonic()
         if now - self._last_refusal_log >= 1.0:
@@ -343,3 +390,22 @@ class TcpServer:
             pass
         finally:
             self._drop(c)
+
+
+async def serve_with_fallback(name: str, make: Callable[[int], TcpServer], port: int) -> tuple[TcpServer, str, int]:
+    """Start ``make(port)``; a vendor's fixed port that is taken (another bridge, the real device's
+    software) falls back to a free port with a warning, as the endpoints then show. Returns the server
+    and its bound host and port."""
+    import errno
+
+    server = make(port)
+    try:
+        host, bound = await server.start()
+    except OSError as exc:
+        if exc.errno != errno.EADDRINUSE or port == 0:
+            raise
+        log.warning("%s: TCP port %d is taken; serving on a free port instead (clients that only try %d "
+                    "will not find it)", name, port, port)
+        server = make(0)
+        host, bound = await server.start()
+    return server, host, bound

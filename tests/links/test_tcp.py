@@ -222,3 +222,137 @@ def test_accepted_connections_use_tcp_keepalive():
         await srv.close()
 
     run(main())
+
+
+def _port_of(c) -> int:
+    return int(c.peer.rsplit(":", 1)[1])
+
+
+async def _refused(reader: asyncio.StreamReader, within: float = 1.0) -> bool:
+    """Whether the server closed this fresh connection (EOF or reset) within ``within`` [s]."""
+    try:
+        return await asyncio.wait_for(reader.read(1), within) == b""
+    except asyncio.TimeoutError:
+        return False
+    except (ConnectionError, OSError):
+        return True
+
+
+def test_a_full_server_evicts_the_client_longest_without_progress(caplog):
+    """Full server (3 slots): an idle client (connected first, nothing either way), a deaf one
+    (never reads what it is sent: stalled) and a talker. Past the grace, a newcomer evicts the
+    idle one (longest without progress), the next the deaf one; the talker is never evicted, and
+    once only clients making progress are left a newcomer is refused."""
+    grace = 0.5
+
+    async def main():
+        srv = TcpServer("t", max_clients=3, evict_grace=grace, write_buffer=16 * 1024, sndbuf=4096,
+                        stall_timeout=None, on_data=lambda c, d: None)
+        host, port = await srv.start()
+        idle = socket.create_connection((host, port))
+        deaf = socket.socket()
+        deaf.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        deaf.connect((host, port))
+        talker_r, talker_w = await asyncio.open_connection(host, port)
+        while srv.stats.connected < 3:
+            await asyncio.sleep(0.01)
+        deaf_port = deaf.getsockname()[1]
+        for i in range(4):  # 200 kB for the deaf one: far more than its buffers take
+            srv.broadcast(message(i), only=lambda c: _port_of(c) == deaf_port)
+        talking = True
+
+        async def talk():
+            while talking:
+                talker_w.write(b"x")
+                await asyncio.sleep(0.05)
+        talk_task = asyncio.ensure_future(talk())
+        # within the grace nobody is evicted: the newcomer is refused
+        r0, w0 = await asyncio.open_connection(host, port)
+        assert await _refused(r0)
+        assert srv.stats.evicted == 0 and srv.stats.refused == 1
+        await asyncio.sleep(grace + 0.2)
+        stale = {_port_of(c): srv.stale_for(c) for c in srv.clients.values()}
+        assert stale[idle.getsockname()[1]][1] == "idle" and stale[deaf_port][1] == "stalled", stale
+        assert stale[idle.getsockname()[1]][0] > stale[deaf_port][0] > grace, stale
+        assert stale[talker_w.get_extra_info("sockname")[1]][0] < 0.3, stale  # it talks every 50 ms
+        newcomers = []
+        for expect_gone in (idle, deaf):
+            r, w = await asyncio.open_connection(host, port)
+            newcomers.append(w)
+            assert not await _refused(r, 0.3)  # admitted: left open
+            w.write(b"hello")  # and talks, so it is not idle itself
+            left = {_port_of(c) for c in srv.clients.values()}
+            assert expect_gone.getsockname()[1] not in left, left
+            assert talker_w.get_extra_info("sockname")[1] in left
+        assert srv.stats.evicted == 2
+        idle.settimeout(2)
+        assert idle.recv(10) == b""  # the evicted client sees its connection closed
+        # only clients making progress now (talker + two newcomers, fresh): refused again
+        r9, w9 = await asyncio.open_connection(host, port)
+        assert await _refused(r9)
+        assert srv.stats.evicted == 2 and srv.stats.refused == 2 and srv.stats.connected == 3
+        talking = False
+        await talk_task
+        for s in (idle, deaf):
+            s.close()
+        for w in (w0, w9, talker_w, *newcomers):
+            w.close()
+        await srv.close()
+
+    with caplog.at_level("INFO", logger="hilsim.links.tcp"):
+        run(main())
+    text = caplog.text
+    assert "evicted (idle: sent nothing and was sent nothing for" in text
+    assert "evicted (stalled: has taken nothing it was sent for" in text
+    assert text.count("evicted (") == 2
+
+
+def test_a_full_server_of_clients_making_progress_refuses_and_drops_none():
+    """Every slot held by a client that talks or reads: past the grace a newcomer is still
+    refused and every held client keeps being served."""
+    async def main():
+        srv = TcpServer("t", max_clients=2, evict_grace=0.3, on_data=lambda c, d: None)
+        host, port = await srv.start()
+        talker_r, talker_w = await asyncio.open_connection(host, port)
+        reader_r, reader_w = await asyncio.open_connection(host, port)
+        while srv.stats.connected < 2:
+            await asyncio.sleep(0.01)
+        got: list[int] = []
+        for i in range(12):  # 1.2 s, four times the grace
+            talker_w.write(b"x")
+            srv.broadcast(message(i), only=lambda c: _port_of(c) == reader_w.get_extra_info("sockname")[1])
+            got.append(await asyncio.wait_for(read_message(reader_r), 5))
+            await asyncio.sleep(0.1)
+            if i in (5, 11):
+                r, w = await asyncio.open_connection(host, port)
+                assert await _refused(r)
+                w.close()
+        assert got == list(range(12))
+        assert srv.stats.evicted == 0 and srv.stats.refused == 2 and srv.stats.connected == 2
+        for w in (talker_w, reader_w):
+            w.close()
+        await srv.close()
+
+    run(main())
+
+
+def test_a_stream_listener_with_nothing_to_read_is_not_idle():
+    """command_channel=False (a stream whose clients only listen): a client the server has
+    nothing to send is waiting on the server, not idle; it keeps its slot. With evict_grace
+    None the server never evicts (the old behaviour)."""
+    async def main():
+        for kw in ({"command_channel": False, "evict_grace": 0.2}, {"evict_grace": None}):
+            srv = TcpServer("t", max_clients=1, **kw)
+            host, port = await srv.start()
+            listener = socket.create_connection((host, port))
+            while srv.stats.connected < 1:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.5)
+            r, w = await asyncio.open_connection(host, port)
+            assert await _refused(r), kw
+            assert srv.stats.evicted == 0 and srv.stats.connected == 1, kw
+            w.close()
+            listener.close()
+            await srv.close()
+
+    run(main())
