@@ -9,9 +9,10 @@ from functools import cache
 from typing import Any, Callable
 
 import numpy as np
+from pymodbus.framer import FramerRTU
 
-from hilsim.links import modbus as mb
 from hilsim.protocols import aris, ddf, ddf_commands, dronecan, oculus, slcan, socketcand, vesc_can, vesc_uart, vrcsr
+from hilsim.protocols import modbus as mb
 from hilsim.protocols.can import CanFrame
 from tests.fuzz.adapters import (
     CAN_EFF_FLAG,
@@ -379,7 +380,7 @@ def tcp_oversize() -> list[tuple[bytes, bytes]]:
 
 def rtu_frame(pdu: bytes, unit: int) -> bytes:
     f = bytes([unit]) + pdu
-    return f + mb.FramerRTU.compute_CRC(f).to_bytes(2, "big")
+    return f + FramerRTU.compute_CRC(f).to_bytes(2, "big")
 
 
 def rtu_reply(unit: int, fc: int) -> Predicate:
