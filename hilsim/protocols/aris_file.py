@@ -15,14 +15,16 @@ file without it the SDK's permutation would be needed, which we do not ship:
 :meth:`ArisReader.frame` then returns the samples in stored order and says so).
 
 A file that is not DDF_05 or whose size does not fit its geometry raises
-:class:`ArisFileError` (a ValueError).
+:class:`ArisFileError` (a ValueError). Sans-I/O as the rest of the package: the
+reader takes the file's bytes or a binary stream, the writer a binary stream;
+opening files is the caller's.
 """
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import BinaryIO, Iterator, Mapping
 
 import numpy as np
@@ -62,24 +64,26 @@ class ArisFrame:
 
 
 class ArisReader:
-    """Random access to the frames of an .aris file; use as a context manager or call close()."""
+    """Random access to the frames of an .aris recording.
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
-        self._f: BinaryIO = open(self.path, "rb")
-        try:
-            self._open()
-        except BaseException:
-            self._f.close()
-            raise
+    source: the file's bytes, or a seekable binary stream (an open file: the caller
+    opens it and closes it; :meth:`close` leaves a stream it was given open). Use as a
+    context manager or call close().
+    """
+
+    def __init__(self, source: bytes | BinaryIO, name: str = "") -> None:
+        self._f: BinaryIO = io.BytesIO(source) if isinstance(source, (bytes, bytearray, memoryview)) else source
+        self.name = name or str(getattr(source, "name", "") or "<.aris bytes>")
+        self._f.seek(0)
+        self._open()
 
     def _open(self) -> None:
         raw = self._f.read(HEADER_SIZE)
         if len(raw) < HEADER_SIZE:
-            raise ArisFileError(f"{self.path}: {len(raw)} bytes, shorter than the 1024-byte file header")
+            raise ArisFileError(f"{self.name}: {len(raw)} bytes, shorter than the 1024-byte file header")
         self.file_header = decode_file_header(raw)
         if self.file_header["Version"] != FILE_VERSION:
-            raise ArisFileError(f"{self.path}: not an ARIS file (starts {raw[:4].hex(' ')}, expected 44 44 46 05)")
+            raise ArisFileError(f"{self.name}: not an ARIS file (starts {raw[:4].hex(' ')}, expected 44 44 46 05)")
         first = self._f.read(HEADER_SIZE)
         beams, samples = int(self.file_header["NumRawBeams"]), int(self.file_header["SamplesPerChannel"])  # type: ignore[arg-type]
         if len(first) == HEADER_SIZE:
@@ -87,10 +91,10 @@ class ArisReader:
             beams = beams_for_ping_mode(int(fh["PingMode"])) or beams  # type: ignore[arg-type]
             samples = int(fh["SamplesPerBeam"]) or samples  # type: ignore[arg-type]
         if not (1 <= beams <= MAX_BEAMS and 1 <= samples <= MAX_SAMPLES):
-            raise ArisFileError(f"{self.path}: implausible geometry {beams} beams x {samples} samples")
+            raise ArisFileError(f"{self.name}: implausible geometry {beams} beams x {samples} samples")
         self.n_beams, self.n_samples = beams, samples
         self.frame_size = HEADER_SIZE + beams * samples
-        size = self.path.stat().st_size
+        size = self._f.seek(0, io.SEEK_END)
         self.n_frames = (size - HEADER_SIZE) // self.frame_size
         self.trailing_bytes = (size - HEADER_SIZE) % self.frame_size
 
@@ -120,7 +124,7 @@ class ArisReader:
             yield self.frame(i)
 
     def close(self) -> None:
-        self._f.close()
+        """Nothing to release: the stream is the caller's (kept for ``with`` blocks)."""
 
     def __enter__(self) -> "ArisReader":
         return self
@@ -130,18 +134,22 @@ class ArisReader:
 
 
 class ArisWriter:
-    """Write an .aris file frame by frame; FrameCount is patched on close().
+    """Write an .aris recording frame by frame; FrameCount is patched on close().
 
+    sink: a seekable binary stream opened for writing (``open(path, "wb")``: the
+    caller opens it; :meth:`close` flushes it and leaves it open) or, for the
+    ARIS device until it opens its recording itself, a path (opened and closed here).
     file_fields: extra file-header fields (SN, strHeaderID ...). Every frame of
     one file must have the same geometry. Frames are written with
     ``ReorderedSamples = 1`` and ``Version = DDF_05``.
     """
 
-    def __init__(self, path: str | os.PathLike[str], file_fields: Mapping[str, HeaderValue] | None = None) -> None:
-        self.path = Path(path)
+    def __init__(self, sink: BinaryIO | str | os.PathLike[str],
+                 file_fields: Mapping[str, HeaderValue] | None = None) -> None:
         self.file_fields: dict[str, HeaderValue] = dict(file_fields or {})
         encode_file_header(self.file_fields)  # validate early
-        self._f: BinaryIO | None = open(self.path, "wb")
+        self._owned = isinstance(sink, (str, os.PathLike))
+        self._f: BinaryIO | None = open(sink, "wb") if isinstance(sink, (str, os.PathLike)) else sink
         self._f.write(encode_file_header(self.file_fields))
         self.n_frames = 0
         self.shape: tuple[int, int] | None = None
@@ -176,7 +184,8 @@ class ArisWriter:
         if self._f is None:
             return
         self.flush()
-        self._f.close()
+        if self._owned:
+            self._f.close()
         self._f = None
 
     def __enter__(self) -> "ArisWriter":

@@ -26,7 +26,7 @@ SAMPLE = ROOT / "tests" / "data" / "aris_sample.aris"
 
 
 def test_reader_opens_the_real_recording():
-    with ArisReader(SAMPLE) as r:
+    with open(SAMPLE, "rb") as f, ArisReader(f) as r:
         assert (r.n_beams, r.n_samples, len(r)) == (48, 2000, 6)
         assert r.serial_number == 1098 and r.trailing_bytes == 0
         frames = list(r)
@@ -52,14 +52,14 @@ def test_reader_opens_the_real_recording():
 
 def test_writer_round_trip_and_frame_count(tmp_path):
     out = tmp_path / "copy.aris"
-    with ArisReader(SAMPLE) as r, ArisWriter(out, {"SN": 1098}) as w:
+    with open(SAMPLE, "rb") as f, ArisReader(f) as r, open(out, "wb") as sink, ArisWriter(sink, {"SN": 1098}) as w:
         for f in r:
             w.write_frame(f.header, f.samples)
     raw = out.read_bytes()
     assert raw[:4] == b"DDF\x05" and struct.unpack_from("<I", raw, 4)[0] == 6
     assert struct.unpack_from("<I", raw, 16)[0] == 48 and struct.unpack_from("<I", raw, 24)[0] == 2000
     assert struct.unpack_from("<I", raw, 44)[0] == 1098
-    with ArisReader(out) as a, ArisReader(SAMPLE) as b:
+    with ArisReader(out.read_bytes()) as a, ArisReader(SAMPLE.read_bytes()) as b:
         for fa, fb in zip(a, b):
             np.testing.assert_array_equal(fa.samples, fb.samples)
             assert fa.header["WindowStart"] == fb.header["WindowStart"]
@@ -69,10 +69,10 @@ def test_reader_rejects_other_files(tmp_path):
     p = tmp_path / "x.aris"
     p.write_bytes(b"DDF\x04" + bytes(2000))
     with pytest.raises(ArisFileError):
-        ArisReader(p)
+        ArisReader(p.read_bytes())
     p.write_bytes(b"DDF")
-    with pytest.raises(ArisFileError):
-        ArisReader(p)
+    with pytest.raises(ArisFileError), open(p, "rb") as f:
+        ArisReader(f)
 
 
 # --------------------------------------------------------------- frame header

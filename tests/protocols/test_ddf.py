@@ -466,19 +466,21 @@ def test_file_round_trip_and_nc_style_truncated_capture(tmp_path: Path) -> None:
     data, expected = stream(96, 512, 3)
     path = tmp_path / "rec.ddf"
     frames = [e for e in expected if isinstance(e, FrameEvent)]
-    assert write_ddf_file(path, FileHeader(idstring="test"), frames) == 3
-    header, back = read_ddf_file(path)
+    with open(path, "wb") as sink:
+        assert write_ddf_file(sink, FileHeader(idstring="test"), frames) == 3
+    with open(path, "rb") as f:
+        header, back = read_ddf_file(f)
     assert header.numframes == 3 and struct.unpack_from("<i", path.read_bytes(), 4)[0] == 3
     assert back == frames
     capture = tmp_path / "capture.ddf"
     capture.write_bytes(data[:-100])  # nc killed mid-frame; numframes stays 0 (live)
-    header, back = read_ddf_file(capture)
+    header, back = read_ddf_file(capture.read_bytes())
     assert header.numframes == 0 and back == frames[:2]
-    with pytest.raises(ProtocolError, match="incomplete last frame"):
-        read_ddf_file(capture, strict=True)
+    with pytest.raises(ProtocolError, match="incomplete last frame"), open(capture, "rb") as f:
+        read_ddf_file(f, strict=True)
     (tmp_path / "bad.ddf").write_bytes(b"RIFF" + bytes(2000))
     with pytest.raises(ProtocolError, match="not a DDF"):
-        read_ddf_file(tmp_path / "bad.ddf")
+        read_ddf_file((tmp_path / "bad.ddf").read_bytes())
 
 
 # ------------------------------------------------------------- CommandDecoder
