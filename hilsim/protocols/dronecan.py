@@ -28,10 +28,12 @@ from __future__ import annotations
 import binascii
 import math
 import struct
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Final, Sequence, Union
 
 from hilsim.protocols.can import CanFrame
+from hilsim.protocols.codec import NEED_DATA, NeedData
 
 RAW_COMMAND_DTID: Final = 1030
 RAW_COMMAND_SIGNATURE: Final = 0x217F5C87D7EC951D
@@ -357,8 +359,8 @@ class _Session:
 class TransferReceiver:
     """Frames -> complete message transfers of the data types in ``signatures``.
 
-    ``receive(frame, now)`` returns a :class:`Transfer` when ``frame`` completes
-    one, else None. At most ``max_sessions`` transfers are assembled at once
+    ``receive_frame(frame, now)`` then ``next_event()`` until NEED_DATA (or
+    ``receive(frame, now)``: the :class:`Transfer` ``frame`` completes, else None). At most ``max_sessions`` transfers are assembled at once
     (the oldest is dropped), each at most ``max_payload`` bytes; a session idle
     for ``timeout`` [s] is abandoned. Never raises on bus input.
     """
@@ -369,8 +371,25 @@ class TransferReceiver:
     timeout: float = 2.0
     stats: ReceiverStats = field(default_factory=ReceiverStats)
     _sessions: dict[tuple[int, int], _Session] = field(default_factory=dict)
+    _done: deque[Transfer] = field(default_factory=deque)
+
+    def receive_frame(self, frame: CanFrame, now: float) -> None:
+        """One frame from the bus at ``now`` [s] (the codec contract on frames: whole CAN frames
+        instead of bytes); drain the transfers it completes with :meth:`next_event`."""
+        t = self.receive(frame, now)
+        if t is not None:
+            self._done.append(t)
+
+    def next_event(self) -> Transfer | NeedData:
+        return self._done.popleft() if self._done else NEED_DATA
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Payload bytes of the transfers being assembled."""
+        return sum(len(s.data) for s in self._sessions.values())
 
     def receive(self, frame: CanFrame, now: float) -> Transfer | None:
+        """One frame -> the transfer it completes, or None (:meth:`receive_frame` + :meth:`next_event` in one call)."""
         self.stats.frames += 1
         if not frame.is_extended or frame.is_remote:
             self.stats.ignored += 1

@@ -173,6 +173,10 @@ class SocketcandServer:
         out, self._replies = self._replies, []
         return out
 
+    def data_to_send(self) -> bytes:
+        """The reply messages so far as one byte string (cleared); :meth:`replies` keeps them apart."""
+        return b"".join(self.replies())
+
     def encode_frame(self, frame: CanFrame, timestamp: float) -> bytes:
         """The message for a bus frame; b"" unless this client is in raw mode."""
         return format_frame(frame, timestamp) if self.mode is Mode.RAW else b""

@@ -6,12 +6,14 @@
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Union
 
 from google.protobuf.message import DecodeError
 
 from hilsim.protocols import codec
+from hilsim.protocols.codec import NEED_DATA, NeedData
 from hilsim.protocols.aris.commands import BadCommand
 from hilsim.protocols.aris.constants import HEADER_SIZE, MAX_DATAGRAM, MAX_FRAME_DATA, SYSTEM_1800
 from hilsim.protocols.aris_pb import aris_availability_pb2 as pb_avail
@@ -137,8 +139,23 @@ class FrameAssembler:
         self._got = bytearray()  # 1 per byte of the frame received
         self._received = 0
         self._done = -1
+        self._events: deque[AssemblerEvent] = deque()
+
+    @property
+    def buffered_bytes(self) -> int:
+        """The frame in progress and its map of received bytes."""
+        return len(self._data) + len(self._got)
+
+    def receive_data(self, datagram: bytes) -> None:
+        """One whole datagram (UDP keeps their bounds: each call is one FramePart); drain with
+        :meth:`next_event`."""
+        self._events.extend(self.receive_datagram(datagram))
+
+    def next_event(self) -> AssemblerEvent | NeedData:
+        return self._events.popleft() if self._events else NEED_DATA
 
     def receive_datagram(self, datagram: bytes) -> list[AssemblerEvent]:
+        """One datagram -> the events it gives at once (:meth:`receive_data` + :meth:`next_event`, in one call)."""
         m = pb_frame.FramePart()
         try:
             m.ParseFromString(bytes(datagram))
