@@ -316,6 +316,7 @@ class ThrusterSet:
         self._pieces = [pieces[id(p)] for p in profiles]
         # (Fx, Fy, Fz, Mz) per unit thrust: the columns the 4-DOF dynamics use
         self._cols = [tuple(float(self.matrix[r, i]) for r in (0, 1, 2, 5)) for i in range(n)]
+        self._cols_xy = [(float(self.matrix[3, i]), float(self.matrix[4, i])) for i in range(n)]  # Mx, My
         taus = sorted({p.time_constant for p in profiles})
         self._group = [taus.index(p.time_constant) for p in profiles]
         self._members = [[i for i in range(n) if self._group[i] == g] for g in range(len(taus))]
@@ -425,6 +426,17 @@ class ThrusterSet:
             p = self._shared
             return self.matrix @ np.interp(self._speeds(), p.curve_speed, p.curve_thrust)
         return self.matrix @ self.thrusts()
+
+    def roll_pitch_moments(self) -> tuple[float, float]:
+        """(Mx, My) [N m] of the thrusts at the current speeds: the two rows of the wrench
+        that :meth:`tick` leaves out (a 6-DOF vehicle calls this, then :meth:`tick`)."""
+        fs, g, on, slope = self._f, self._group, self._on, self._slope
+        mx = my = 0.0
+        for i, (cx, cy) in enumerate(self._cols_xy):
+            t = on[i] + slope[i] * fs[g[i]]
+            mx += cx * t
+            my += cy * t
+        return mx, my
 
     def tick(self, dt: float, now: float) -> tuple[float, float, float, float]:
         """One physics tick: the wrench's (Fx, Fy, Fz [N], Mz [N m]) at the current

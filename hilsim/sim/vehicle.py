@@ -42,6 +42,12 @@ is integrated first and fixes the stages' headings. The step returns a
 :class:`VehicleState` built from its 15 numbers (:meth:`VehicleState.from_flat`):
 the arrays are made only if read, and the next step reads the numbers.
 
+A profile with a ``[hydrostatics]`` table (the BlueROV2s) lists all six DOFs and
+is integrated by the 6-DOF model of :mod:`hilsim.sim.vehicle6dof` instead
+(``Vehicle(profile)`` builds it): roll and pitch, Coriolis terms and the
+restoring moments of the centres of gravity and buoyancy. Everything above
+describes the diagonal model that Cyclops keeps.
+
 Profiles (``devices/vehicles/*.toml``) are read by :func:`load_vehicle_profile`;
 another vehicle is another file. Water currents are :class:`Current`.
 """
@@ -58,9 +64,11 @@ import numpy as np
 
 from hilsim.config import Doc, check_keys, load_toml, quantity, require
 from hilsim.resources import find_profile
+from hilsim.sim.ardupilot_frames import ArdupilotTable, check_layout, parse_ardupilot
 from hilsim.sim.geometry import F64
 from hilsim.sim.state import VehicleState
 from hilsim.sim.thrusters import Thruster, ThrusterProfile, ThrusterSet, load_thruster_profile
+from hilsim.sim.vehicle6dof import Hydrostatics, Vehicle6DOF
 
 DOF_NAMES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
 MODELLED_DOFS = ("surge", "sway", "heave", "yaw")
@@ -167,7 +175,10 @@ class VehicleProfile:
     dofs: names from :data:`DOF_NAMES` (the others are held); params: DOF name ->
     :class:`DofParameters`; thrusters: placed thrusters (body frame);
     supply_voltage [V] or None (the thruster profile's nominal); sources:
-    dotted key -> where its value comes from.
+    dotted key -> where its value comes from; rigid_mass [kg] the mass in air
+    (``[vehicle].mass``) or None; hydrostatics: weight and buoyancy (a 6-DOF
+    profile, :mod:`hilsim.sim.vehicle6dof`) or None; ardupilot: the
+    ``[ardupilot]`` table (ArduSub frame and servo map) or None.
     """
 
     name: str
@@ -176,6 +187,14 @@ class VehicleProfile:
     thrusters: tuple[Thruster, ...] = ()
     supply_voltage: float | None = None
     sources: dict[str, str] = field(default_factory=dict)
+    rigid_mass: float | None = None
+    hydrostatics: Hydrostatics | None = None
+    ardupilot: ArdupilotTable | None = None
+
+    @property
+    def six_dof(self) -> bool:
+        """True when the profile is integrated by the 6-DOF model (it has hydrostatics)."""
+        return self.hydrostatics is not None
 
     def thruster_set(self, supply_voltage: float | None = None, water_temperature: float = 288.15) -> ThrusterSet:
         """A fresh :class:`ThrusterSet` for this vehicle (voltage [V], temperature [K])."""
@@ -193,7 +212,7 @@ def load_vehicle_profile(path: Path | str) -> VehicleProfile:
     :func:`hilsim.resources.find_profile` (beside the file first, then ``devices/``)."""
     path = Path(path)
     doc = load_toml(path)
-    check_keys(doc, doc.data, ("vehicle", "dynamics", "thrusters"), "")
+    check_keys(doc, doc.data, ("vehicle", "dynamics", "thrusters", "hydrostatics", "ardupilot"), "")
     veh = require(doc, doc.data, "vehicle", "")
     check_keys(doc, veh, ("name", "description", "dofs", "mass", "layout_note"), "vehicle")
     dofs = veh.get("dofs", list(MODELLED_DOFS))
@@ -218,7 +237,44 @@ def load_vehicle_profile(path: Path | str) -> VehicleProfile:
         params[dof] = DofParameters(*vals)
         sources.update({f"{where}.{k}": str(tab[k]["source"]) for k in keys if k in tab})
     thrusters, voltage = _load_thrusters(doc, path)
-    return VehicleProfile(str(veh.get("name", path.stem)), tuple(dofs), params, thrusters, voltage, sources)
+    rigid = float(quantity(doc, veh, "mass", "kg", "vehicle")) if "mass" in veh else None
+    hydro = None
+    if "hydrostatics" in doc.data:
+        hydro = _load_hydrostatics(doc, doc.data["hydrostatics"], dofs, params, rigid, sources)
+    ardupilot = None
+    if "ardupilot" in doc.data:
+        ardupilot = parse_ardupilot(doc, doc.data["ardupilot"], [t.name for t in thrusters])
+        bad = check_layout(ardupilot, thrusters)
+        if bad:
+            raise doc.error("ardupilot", "the thrusters do not match ArduSub's " + ardupilot.frame
+                            + " layout: " + "; ".join(bad))
+    return VehicleProfile(str(veh.get("name", path.stem)), tuple(dofs), params, thrusters, voltage, sources,
+                          rigid, hydro, ardupilot)
+
+
+def _load_hydrostatics(doc: Doc, tab: dict, dofs: list[str], params: dict[str, DofParameters],
+                       rigid: float | None, sources: dict[str, str]) -> Hydrostatics:
+    """``[hydrostatics]``: weight [N], buoyancy [N], centre_of_buoyancy (3,) [m] from the CG.
+    Makes the profile 6-DOF: every DOF listed, [vehicle].mass given, no heave constant_force."""
+    check_keys(doc, tab, ("weight", "buoyancy", "centre_of_buoyancy", "note"), "hydrostatics")
+    if sorted(dofs) != sorted(DOF_NAMES):
+        raise doc.error("vehicle.dofs", f"a profile with [hydrostatics] is 6-DOF: list all of {DOF_NAMES}")
+    if rigid is None or rigid <= 0:
+        raise doc.error("vehicle", "a 6-DOF profile needs vehicle.mass (in air, without added mass) > 0")
+    if any(params[d].constant_force for d in dofs):
+        raise doc.error("dynamics", "a 6-DOF profile takes weight and buoyancy from [hydrostatics]; "
+                                    "remove constant_force")
+    for d in ("surge", "sway", "heave"):
+        if params[d].mass < rigid:
+            raise doc.error(f"dynamics.{d}.mass", f"below vehicle.mass ({rigid} kg): it includes added mass")
+    weight = float(quantity(doc, tab, "weight", "N", "hydrostatics"))
+    buoyancy = float(quantity(doc, tab, "buoyancy", "N", "hydrostatics"))
+    cb = quantity(doc, tab, "centre_of_buoyancy", "m", "hydrostatics", length=3)
+    if weight <= 0 or buoyancy <= 0:
+        raise doc.error("hydrostatics", "weight and buoyancy must be > 0")
+    sources.update({f"hydrostatics.{k}": str(tab[k]["source"])
+                    for k in ("weight", "buoyancy", "centre_of_buoyancy")})
+    return Hydrostatics(weight, buoyancy, (float(cb[0]), float(cb[1]), float(cb[2])))
 
 
 def _load_thrusters(doc: Doc, path: Path) -> tuple[tuple[Thruster, ...], float | None]:
@@ -270,7 +326,15 @@ def _kinematics(x0: float, y0: float, k6: float, cos: _Stages, sin: _Stages, u: 
 
 
 class Vehicle:
-    """The dynamics of one vehicle profile. :meth:`step` is pure."""
+    """The dynamics of one vehicle profile. :meth:`step` is pure.
+
+    ``Vehicle(profile)`` of a 6-DOF profile (one with ``[hydrostatics]``) builds a
+    :class:`hilsim.sim.vehicle6dof.Vehicle6DOF`, which has the same interface."""
+
+    def __new__(cls, profile: VehicleProfile) -> "Vehicle":
+        if cls is Vehicle and profile.hydrostatics is not None:
+            return Vehicle6DOF(profile)  # type: ignore[return-value]
+        return super().__new__(cls)
 
     def __init__(self, profile: VehicleProfile):
         unsupported = [d for d in profile.dofs if d not in MODELLED_DOFS]

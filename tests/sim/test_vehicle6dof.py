@@ -1,0 +1,231 @@
+"""The 6-DOF model against physics: the righting moment of the centres of gravity and
+buoyancy (period and decay linearised about level, closed form), thrusters off the
+centre roll and pitch the vehicle the right way, energy is conserved by the Coriolis
+terms, steady speeds are the damping roots, and the ArduSub layouts of the profiles
+match ArduSub's motor factors (AP_Motors6DOF.cpp)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hilsim.config import ConfigError
+from hilsim.sim.ardupilot_frames import FRAMES, check_layout, motor_wrench
+from hilsim.sim.state import VehicleState
+from hilsim.sim.vehicle import DofParameters, Vehicle, VehicleProfile, load_vehicle_profile
+from hilsim.sim.vehicle6dof import GRAVITY, Vehicle6DOF, specific_force
+
+ROOT = Path(__file__).resolve().parents[2]
+HEAVY = ROOT / "devices" / "vehicles" / "bluerov2_heavy.toml"
+BLUEROV2 = ROOT / "devices" / "vehicles" / "bluerov2.toml"
+CYCLOPS = ROOT / "devices" / "vehicles" / "cyclops.toml"
+
+
+@pytest.fixture(scope="module")
+def heavy() -> VehicleProfile:
+    return load_vehicle_profile(HEAVY)
+
+
+def run(vehicle: Vehicle6DOF, state: VehicleState, seconds: float, dt: float,
+        wrench: tuple[float, ...] = (0.0,) * 6) -> tuple[np.ndarray, list[VehicleState]]:
+    out = [state]
+    for _ in range(int(round(seconds / dt))):
+        state = vehicle.step(state, dt, wrench)
+        out.append(state)
+    return np.array([s.time for s in out]), out
+
+
+def tilted(roll: float = 0.0, pitch: float = 0.0) -> VehicleState:
+    return VehicleState(position=np.array([0.0, 0.0, 5.0]), attitude=np.array([roll, pitch, 0.0]))
+
+
+def test_profiles_are_six_dof_with_sources_and_cyclops_is_not(heavy: VehicleProfile) -> None:
+    assert heavy.six_dof and isinstance(Vehicle(heavy), Vehicle6DOF)
+    assert heavy.dofs == ("surge", "sway", "heave", "roll", "pitch", "yaw")
+    for dof in heavy.dofs:
+        for key in ("mass", "linear_damping", "quadratic_damping"):
+            assert "vB2022" in heavy.sources[f"dynamics.{dof}.{key}"]
+    assert heavy.hydrostatics is not None and heavy.hydrostatics.centre_of_buoyancy[2] < 0
+    assert load_vehicle_profile(BLUEROV2).six_dof
+    cyclops = load_vehicle_profile(CYCLOPS)
+    assert not cyclops.six_dof and type(Vehicle(cyclops)) is Vehicle
+
+
+def zero_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    i = np.nonzero(np.sign(x[:-1]) * np.sign(x[1:]) < 0)[0]
+    return t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])
+
+
+def test_roll_swings_back_with_the_righting_period_and_quadratic_decay(heavy: VehicleProfile) -> None:
+    """Roll: I_p phi'' + K_p|p| phi'|phi'| + B |z_b| phi = 0 (K_p = 0). Linearised:
+    omega_n = sqrt(B |z_b| / I_p); quadratic damping, averaged over a cycle, gives
+    1/A(t) = 1/A0 + 4 c omega t / (3 pi), c = K_p|p| / I_p."""
+    hs, roll = heavy.hydrostatics, heavy.params["roll"]
+    assert hs is not None and roll.linear_damping == 0.0
+    omega = math.sqrt(hs.buoyancy * -hs.centre_of_buoyancy[2] / roll.mass)
+    t, states = run(Vehicle6DOF(heavy), tilted(roll=0.1), 18.0, 0.01)
+    phi = np.array([s.attitude[0] for s in states])
+    zc = zero_crossings(t, phi)
+    period = 2.0 * float(np.mean(np.diff(zc)))
+    assert period == pytest.approx(2.0 * math.pi / omega, rel=0.01)
+    # amplitude of each half swing against the averaged decay law
+    c = roll.quadratic_damping / roll.mass
+    for a, b in zip(zc[:-1], zc[1:]):
+        sel = (t > a) & (t < b)
+        peak = float(np.max(np.abs(phi[sel])))
+        tp = float(t[sel][np.argmax(np.abs(phi[sel]))])
+        expect = 1.0 / (1.0 / 0.1 + 4.0 * c * omega * tp / (3.0 * math.pi))
+        assert peak == pytest.approx(expect, rel=0.06)
+    assert abs(phi[-1]) < 0.03  # swung back towards level
+
+
+def test_pitch_is_a_damped_oscillator_with_the_profiles_numbers(heavy: VehicleProfile) -> None:
+    """Pitch at small amplitude: I_q theta'' + M_q theta' + B |z_b| theta = 0, the
+    closed-form underdamped solution (the quadratic term is < 1 % at 0.01 rad)."""
+    hs, pitch = heavy.hydrostatics, heavy.params["pitch"]
+    assert hs is not None
+    k = hs.buoyancy * -hs.centre_of_buoyancy[2]
+    wn = math.sqrt(k / pitch.mass)
+    zeta = pitch.linear_damping / (2.0 * pitch.mass * wn)
+    assert 0.0 < zeta < 1.0
+    wd = wn * math.sqrt(1.0 - zeta * zeta)
+    a0 = 0.01
+    t, states = run(Vehicle6DOF(heavy), tilted(pitch=a0), 4.0, 0.005)
+    theta = np.array([s.attitude[1] for s in states])
+    exact = a0 * np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta * zeta) * np.sin(wd * t))
+    np.testing.assert_allclose(theta, exact, atol=0.02 * a0)
+    # the first zero crossing, tan(wd t) = -sqrt(1 - zeta^2) / zeta, and the first overshoot
+    zc = zero_crossings(t, theta)
+    assert zc[0] == pytest.approx((math.pi - math.atan(math.sqrt(1 - zeta ** 2) / zeta)) / wd, rel=0.01)
+    overshoot = -float(np.min(theta)) / a0
+    assert overshoot == pytest.approx(math.exp(-math.pi * zeta / math.sqrt(1 - zeta * zeta)), rel=0.05)
+
+
+def test_off_centre_thrusters_roll_and_pitch_the_right_way(heavy: VehicleProfile) -> None:
+    vehicle = Vehicle6DOF(heavy)
+    thrusters = heavy.thruster_set()
+    i = thrusters.index("vertical_front_right")  # at +x, +y; positive thrust pushes down
+    state = tilted()
+    for _ in range(50):
+        thrusters.command(i, "normalized", 0.5, state.time)
+        state = vehicle.step_with_thrusters(state, 0.01, thrusters)
+    roll, pitch, _ = state.attitude
+    assert roll > 0.005 and pitch < -0.005  # starboard side down, nose down
+    assert state.velocity[2] > 0  # and it pushes the vehicle down
+    # the four horizontal thrusters sit below the CG: surging forward raises the nose
+    thrusters = heavy.thruster_set()
+    state = tilted()
+    fwd = [thrusters.index(n) for n in ("front_right", "front_left", "rear_right", "rear_left")]
+    for _ in range(50):
+        for j in fwd:
+            thrusters.command(j, "normalized", 0.5, state.time)
+        state = vehicle.step_with_thrusters(state, 0.01, thrusters)
+    assert state.velocity[0] > 0.05 and state.attitude[1] > 0.005 and abs(state.attitude[0]) < 1e-9
+
+
+def test_thruster_wrench_matches_the_full_matrix(heavy: VehicleProfile) -> None:
+    thrusters = heavy.thruster_set()
+    thrusters.command_all("normalized", [0.3, -0.2, 0.5, 0.1, 0.4, -0.6, 0.2, 0.7], 0.0)
+    thrusters.advance(0.03, 0.03)
+    full = thrusters.wrench()
+    mx, my = thrusters.roll_pitch_moments()
+    fx, fy, fz, mz = thrusters.tick(0.01, 0.04)
+    np.testing.assert_allclose([fx, fy, fz, mx, my, mz], full, atol=1e-9)
+
+
+def energy(profile: VehicleProfile, s: VehicleState) -> float:
+    """Kinetic energy (with added mass) + potential of the weight at the CG and the
+    buoyancy at the CB: U = -W z + B z_CB (NED z down)."""
+    hs = profile.hydrostatics
+    assert hs is not None
+    masses = [profile.params[d].mass for d in profile.dofs]
+    nu = np.concatenate([s.velocity, s.angular_velocity])
+    r = s.pose.rotation
+    z_cb = float(s.position[2] + (r @ np.array(hs.centre_of_buoyancy))[2])
+    return 0.5 * float(np.sum(np.array(masses) * nu * nu)) - hs.weight * float(s.position[2]) + hs.buoyancy * z_cb
+
+
+def test_coriolis_and_restoring_terms_conserve_energy(heavy: VehicleProfile) -> None:
+    """Without damping and thrust the total energy stays constant whatever the motion:
+    the Coriolis terms only move energy between DOFs (a sign error would not)."""
+    params = {d: DofParameters(p.mass, 0.0, 0.0) for d, p in heavy.params.items()}
+    hs = dataclasses.replace(heavy.hydrostatics, centre_of_buoyancy=(0.01, -0.02, -0.03))  # type: ignore[arg-type]
+    free = dataclasses.replace(heavy, params=params, hydrostatics=hs)
+    vehicle = Vehicle6DOF(free)
+    state = VehicleState(position=np.array([0.0, 0.0, 3.0]), attitude=np.array([0.3, -0.2, 1.0]),
+                         velocity=np.array([0.4, -0.3, 0.2]), angular_velocity=np.array([0.5, -0.4, 0.8]))
+    e0 = energy(free, state)
+    _, states = run(vehicle, state, 5.0, 0.002)
+    drift = max(abs(energy(free, s) - e0) for s in states)
+    moving = 0.5 * sum(p.mass * v * v for p, v in zip(params.values(), [0.4, -0.3, 0.2, 0.5, -0.4, 0.8]))
+    assert drift < 1e-6 * moving
+    assert abs(states[-1].angular_velocity[0] - 0.5) > 0.01  # and the motion did couple
+
+
+def test_steady_surge_and_heave_drift_are_the_damping_roots(heavy: VehicleProfile) -> None:
+    """Surge with the net weight held by the vertical force (w = 0: no Munk moment
+    tilts the vehicle), then the sinking drift of W - B with the thrusters off."""
+    vehicle = Vehicle6DOF(heavy)
+    hs = heavy.hydrostatics
+    assert hs is not None
+    _, states = run(vehicle, tilted(), 25.0, 0.02, (20.0, 0.0, -hs.net_down, 0.0, 0.0, 0.0))
+    s = states[-1]
+    assert s.velocity[0] == pytest.approx(vehicle.steady_speed("surge", 20.0), rel=1e-6)
+    assert abs(s.velocity[2]) < 1e-9 and abs(s.attitude[1]) < 1e-9
+    w = vehicle.steady_speed("heave", 0.0)  # W - B alone
+    heave = heavy.params["heave"]
+    assert heave.linear_damping * w + heave.quadratic_damping * w * abs(w) == pytest.approx(hs.net_down)
+    assert w > 0  # vB2022's W > B: it sinks
+    _, states = run(vehicle, tilted(), 20.0, 0.02)
+    assert states[-1].velocity[2] == pytest.approx(w, rel=1e-6)
+
+
+def test_fifty_ms_steps_agree_with_one_ms(heavy: VehicleProfile) -> None:
+    vehicle = Vehicle6DOF(heavy)
+    wrench = (30.0, 10.0, -15.0, 0.3, -0.2, 1.5)
+    start = tilted(roll=0.1, pitch=-0.05)
+    fine = run(vehicle, start, 3.0, 0.001, wrench)[1][-1]
+    coarse = run(vehicle, start, 3.0, 0.05, wrench)[1][-1]
+    np.testing.assert_allclose(np.array(coarse.flat()[:12]), np.array(fine.flat()[:12]), atol=2e-4)
+
+
+def test_specific_force_is_minus_gravity_at_rest_and_tilts_with_the_body() -> None:
+    assert specific_force(VehicleState()) == pytest.approx((0.0, 0.0, -GRAVITY))
+    roll, pitch = 0.2, -0.1
+    got = specific_force(tilted(roll, pitch))
+    want = (GRAVITY * math.sin(pitch), -GRAVITY * math.cos(pitch) * math.sin(roll),
+            -GRAVITY * math.cos(pitch) * math.cos(roll))
+    assert got == pytest.approx(want)
+    # a steady turn: the centripetal term omega x v shows (r u in y)
+    s = VehicleState(velocity=np.array([0.5, 0.0, 0.0]), angular_velocity=np.array([0.0, 0.0, 0.4]))
+    assert specific_force(s)[1] == pytest.approx(0.4 * 0.5)
+
+
+@pytest.mark.parametrize("path", [HEAVY, BLUEROV2])
+def test_ardupilot_tables_match_ardusubs_motor_factors(path: Path) -> None:
+    profile = load_vehicle_profile(path)
+    table = profile.ardupilot
+    assert table is not None and len(table.motors) == len(FRAMES[table.frame]) == len(profile.thrusters)
+    assert check_layout(table, profile.thrusters) == []
+    # ArduSub's yaw pattern (motors with yaw factor +1 above 1500 us, -1 below) turns clockwise
+    mz = sum(FRAMES[table.frame][m.servo - 1][2] * motor_wrench(profile.thrusters[m.thruster], m.direction)[5]
+             for m in table.motors)
+    assert mz > 0
+    # all vertical motors' throttle factor (-1) pattern pushes the vehicle up
+    fz = sum(-FRAMES[table.frame][m.servo - 1][3] * motor_wrench(profile.thrusters[m.thruster], m.direction)[2]
+             for m in table.motors)
+    assert fz > 0  # PWM above 1500 on motors with throttle factor -1: down (+z)
+
+
+def test_a_reversed_motor_is_refused_naming_the_key(tmp_path: Path) -> None:
+    text = HEAVY.read_text()
+    marker = 'servo = 3\nthruster = "rear_right"\ndirection = 1'
+    assert marker in text
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace(marker, marker.replace("direction = 1", "direction = -1")))
+    with pytest.raises(ConfigError, match=r"ardupilot.*servo 3"):
+        load_vehicle_profile(bad)
