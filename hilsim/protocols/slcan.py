@@ -151,6 +151,11 @@ class SlcanAdapter:
     _ack_pending: bytes = b""
     _pending: deque[bytes | None] = field(default_factory=deque)  # complete lines; None = overlong
 
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes of the unfinished line / message."""
+        return len(self._buf)
+
     def receive_data(self, data: bytes) -> None:
         """Bytes from the host. At most MAX_LINE bytes of an unfinished line are kept."""
         for chunk in data.split(b"\n"):  # some hosts end lines in CR LF: LF is ignored

@@ -138,6 +138,11 @@ class SocketcandServer:
     def greeting(self) -> bytes:
         return HI
 
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes of the unfinished line / message."""
+        return len(self._buf)
+
     def receive_data(self, data: bytes) -> None:
         pos, end = 0, len(data)
         while pos < end:

@@ -14,15 +14,8 @@ from pymodbus.framer import FramerRTU
 from hilsim.protocols import aris, ddf, ddf_commands, dronecan, oculus, slcan, socketcand, vesc_can, vesc_uart, vrcsr
 from hilsim.protocols import modbus as mb
 from hilsim.protocols.can import CanFrame
-from tests.fuzz.adapters import (
-    CAN_EFF_FLAG,
-    CAN_RECORD,
-    KELLER_TRANSPARENT,
-    Datagrams,
-    Reply,
-    can_record,
-    datagram,
-)
+from tests.fuzz.adapters import KELLER_TRANSPARENT, Reply
+from tests.fuzz.links import CAN_EFF_FLAG, CAN_RECORD, Datagrams, can_record, datagram
 
 Predicate = Callable[[Any], bool]
 

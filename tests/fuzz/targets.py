@@ -5,18 +5,20 @@ Used by ``tests/test_decoders_robust.py`` (hypothesis, in CI) and by
 needs neither atheris nor hypothesis. One :class:`Target` per decoder:
 
 * ``make()``: a fresh decoder, in the state a peer finds it in (a new
-  connection, a new serial line); ``feed(decoder, data) -> events``: the bytes
-  handed over with the codec's own API and the decoder drained
-  (:mod:`tests.fuzz.adapters`, which also turns bytes into CAN frames and
-  datagrams for the decoders that take those);
+  connection, a new serial line), behind its link (:func:`tests.fuzz.adapters.driven`:
+  bytes, datagrams or CAN frames); ``feed(decoder, data) -> events``: by default
+  the codec contract (:func:`tests.fuzz.adapters.feed`: ``receive_data`` and
+  ``next_event`` until NEED_DATA, ``data_to_send`` as replies); only the Modbus
+  sessions, which answer requests, have their own;
 * ``samples()``: valid messages built with the codecs' own encoders and the
   reference's known vectors, each with a predicate recognising its event
   (``seeds()``: more valid input without an event to recognise, for atheris);
   ``oversize()``: heads claiming a huge length (4 GB where the field allows
   it, else its largest value), each with a filler that keeps coming
   (:mod:`tests.fuzz.samples`);
-* ``buffered(decoder) -> int`` and ``bound``: the bytes the decoder retains
-  once drained and the most it may ever retain (``measure`` says what counts);
+* ``buffered(decoder) -> int`` (by default the decoder's ``buffered_bytes`` plus a
+  partial link unit) and ``bound``: the bytes the decoder retains once drained and
+  the most it may ever retain (``measure`` says what counts);
 * how it resynchronises: ``sync`` (what a peer sends to put a text protocol
   back in step: a line end), ``resync_after`` (how many bytes of valid traffic
   after garbage may still be lost, and ``resync_note`` why), ``gap`` (the
@@ -31,11 +33,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from hilsim.links import modbus as mb
-from hilsim.protocols import aris, ddf, ddf_commands, dronecan, oculus, slcan, socketcand, vesc_uart, vrcsr
+from hilsim.protocols import aris, ddf, ddf_commands, dronecan, modbus, oculus, slcan, socketcand, vesc_can, vesc_uart, vrcsr
+from hilsim.protocols import modbus_device as mb
 from tests.fuzz import adapters as A
+from tests.fuzz import links as L
 from tests.fuzz import samples as S
 from tests.fuzz.adapters import Closed, Events, PeerError, Reply
+from tests.fuzz.events import Canon, badly_typed
 from tests.fuzz.samples import Sample
 
 __all__ = ["Closed", "PeerError", "Reply", "Sample", "TARGETS", "Target", "names"]
@@ -48,12 +52,12 @@ class Target:
     name: str
     summary: str
     make: Callable[[], Any]
-    feed: Callable[[Any, bytes], Events]
-    buffered: Callable[[Any], int]
     bound: int
     measure: str
     samples: Callable[[], list[Sample]]
     oversize: Callable[[], list[tuple[bytes, bytes]]]  # (head from a fresh decoder, filler repeated after it)
+    feed: Callable[[Any, bytes], Events] = A.feed     # the codec contract; Modbus sessions: their own
+    buffered: Callable[[Any], int] = A.buffered      # decoder.buffered_bytes + a partial link unit
     prefix: bytes = b""          # what every valid stream starts with (a file header, an open command)
     sync: bytes = b""            # sent (then the prefix) before a valid message after garbage (a line end)
     resync_after: int = 0        # bytes of valid traffic after garbage that may still be lost ...
@@ -96,7 +100,7 @@ class Target:
             n = sizes[i % len(sizes)]
             events = self.feed(decoder, data[pos : pos + n])
             for e in events:
-                if bad := A.badly_typed(e):
+                if bad := badly_typed(e):
                     raise AssertionError(f"{self.name}: an event does not fit its annotation: {bad}")
             out += events
             held = self.buffered(decoder)
@@ -119,7 +123,7 @@ class Target:
         """What must not depend on how the input was cut: events and reply bytes apart (when a reply
         is asked for does), without skipped-bytes counts, up to a loss of sync where the table says
         so; a peer error's text may quote fewer bytes; NaN equals NaN."""
-        others = [A.Canon(PeerError("") if isinstance(e, PeerError) else e) for e in events
+        others = [Canon(PeerError("") if isinstance(e, PeerError) else e) for e in events
                   if not isinstance(e, (Reply, *self.chunk_dependent))]
         lost = [i for i, e in enumerate(others) if isinstance(e.event, self.chunking_matters_after)]
         if lost:
@@ -149,8 +153,7 @@ class Target:
 TARGETS: dict[str, Target] = {t.name: t for t in [
     Target(
         "ddf-stream", "DDF_04 stream reader (client side): ddf.DdfReader",
-        make=A.DdfClient, feed=A.ddf_feed, end=A.ddf_end,
-        buffered=lambda c: c.reader.buffered_bytes,
+        make=A.driven(ddf.DdfReader), end=A.end,
         bound=ddf.FRAME_HEADER_SIZE + ddf.MAX_NUMBEAMS * ddf.MAX_SAMPLES_PER_CHANNEL,
         measure="DdfReader.buffered_bytes (one frame at most)",
         samples=S.ddf_samples, oversize=S.ddf_oversize, prefix=S.ddf_prefix(),
@@ -161,13 +164,13 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
                                    "shifts every later one (the bytes still decode, as the wrong frames)"),
     Target(
         "ddf-commands", "DDF command lines (server side): ddf_commands.CommandDecoder",
-        make=ddf_commands.CommandDecoder, feed=A.lines_feed, buffered=lambda d: d.buffered_bytes,
-        bound=ddf_commands.MAX_LINE_BYTES, measure="CommandDecoder.buffered_bytes",
+        make=A.driven(ddf_commands.CommandDecoder), bound=ddf_commands.MAX_LINE_BYTES,
+        measure="CommandDecoder.buffered_bytes",
         samples=S.ddf_command_samples, oversize=S.text_oversize(b"RATE ", b"9"), sync=b"\n"),
     Target(
         "oculus", "Oculus TCP stream, sonar side (client messages): oculus.OculusReader",
-        make=oculus.OculusReader, feed=A.oculus_feed, buffered=lambda r: r.buffered_bytes,
-        bound=oculus.HEADER_SIZE + oculus.MAX_SERVER_PAYLOAD, measure="OculusReader.buffered_bytes",
+        make=A.driven(oculus.OculusReader), bound=oculus.HEADER_SIZE + oculus.MAX_SERVER_PAYLOAD,
+        measure="OculusReader.buffered_bytes",
         samples=S.oculus_samples, oversize=S.oculus_oversize,
         resync_after=oculus.HEADER_SIZE + oculus.MAX_SERVER_PAYLOAD, chunk_dependent=(oculus.Junk,),
         resync_note="no checksum: a '53 4F' in garbage (or a cut message) announces up to max_payload bytes; "
@@ -175,8 +178,8 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
                     "whose fields happen to be finite), the valid messages inside are lost"),
     Target(
         "aris-commands", "ARIS command channel (sonar side): aris.CommandReader",
-        make=aris.CommandReader, feed=A.aris_feed, buffered=lambda r: r.buffered_bytes,
-        bound=aris.MAX_COMMAND_LENGTH + 4, measure="CommandReader.buffered_bytes",
+        make=A.driven(aris.CommandReader), bound=aris.MAX_COMMAND_LENGTH + 4,
+        measure="CommandReader.buffered_bytes",
         samples=S.aris_samples, oversize=S.aris_oversize, resync_after=aris.MAX_COMMAND_LENGTH + 4,
         chunk_dependent=(aris.Junk,), chunking_matters_after=(aris.BadCommand, aris.Oversize),
         chunking_note="out of sync, a complete command that parses is taken at once, even if an earlier "
@@ -186,28 +189,27 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
                     "max_length bytes; the reader waits for them before it can tell they are not a command"),
     Target(
         "aris-frames", "ARIS FramePart datagrams (client side): aris.FrameAssembler",
-        make=A.ArisClient, feed=A.assembler_feed, buffered=A.assembler_buffered,
-        bound=2 * aris.FrameAssembler().max_data + 2 + 0xFFFF,
-        measure="the frame in progress and its map of received bytes (FrameAssembler._data, _got; no public "
-                "measure) + a partial datagram record",
+        make=A.driven(aris.FrameAssembler, L.Datagrams), bound=2 * aris.FrameAssembler().max_data + 2 + 0xFFFF,
+        measure="FrameAssembler.buffered_bytes (the frame in progress and its map of received bytes) "
+                "+ a partial datagram record",
         samples=S.assembler_samples, oversize=S.assembler_oversize,
-        whole=lambda data: A.datagram(data[:0xFFFF]), truncate=S.assembler_cut,
+        whole=lambda data: L.datagram(data[:0xFFFF]), truncate=S.assembler_cut,
         no_resync="a part with a higher frame_index makes every older index stale (by design: UDP reorders), "
                   "so a frame after garbage is assembled only if its index is higher than the garbage's"),
     Target(
         "socketcand", "socketcand text protocol (server side): socketcand.SocketcandServer",
-        make=socketcand.SocketcandServer, feed=A.socketcand_feed, buffered=lambda s: len(s._buf),
-        bound=socketcand.MAX_MESSAGE, measure="the unfinished message (SocketcandServer._buf)",
+        make=A.driven(socketcand.SocketcandServer), bound=socketcand.MAX_MESSAGE,
+        measure="SocketcandServer.buffered_bytes (the unfinished message)",
         samples=S.socketcand_samples, oversize=S.text_oversize(b"< open can0 >< rawmode >< send ", b"0"),
         prefix=b"< open can0 >< rawmode >", sync=b">"),
     Target(
         "slcan", "slcan (adapter side): slcan.SlcanAdapter",
-        make=slcan.SlcanAdapter, feed=A.slcan_feed, buffered=lambda a: len(a._buf),
-        bound=slcan.MAX_LINE, measure="the unfinished line (SlcanAdapter._buf)",
+        make=A.driven(slcan.SlcanAdapter), bound=slcan.MAX_LINE,
+        measure="SlcanAdapter.buffered_bytes (the unfinished line)",
         samples=S.slcan_samples, oversize=S.text_oversize(b"O\rt", b"0"), prefix=b"O\r", sync=b"\r"),
     Target(
         "vesc-uart", "VESC UART packets (ESC side): vesc_uart.PacketDecoder + decode_command",
-        make=vesc_uart.PacketDecoder, feed=A.vesc_uart_feed, buffered=lambda d: d.buffered_bytes,
+        make=A.driven(vesc_uart.PacketDecoder, then=vesc_uart.decode_command),
         bound=3 + vesc_uart.MAX_PAYLOAD + 3 - 1, measure="PacketDecoder.buffered_bytes",
         samples=S.vesc_uart_samples, seeds=S.vesc_uart_seeds, resync_after=3 + vesc_uart.MAX_PAYLOAD + 3,
         resync_note="the end byte 0x03 is also the long-form start byte: a packet cut just before its end "
@@ -216,36 +218,36 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
         oversize=lambda: [(b"\x03\xff\xff", S.filler()), (b"\x03\x02\x00", S.filler()), (b"\x02\xff", S.filler())]),
     Target(
         "vrcsr", "VideoRay VRCSR packets (thruster side): vrcsr.PacketDecoder",
-        make=vrcsr.PacketDecoder, feed=A.vrcsr_feed, buffered=lambda d: d.buffered_bytes,
+        make=A.driven(vrcsr.PacketDecoder, then=lambda p: vrcsr.PropulsionCommand.decode(p.payload)),
         bound=vrcsr.HEADER_SIZE + 2 * vrcsr.CRC_SIZE + 255 - 1, measure="PacketDecoder.buffered_bytes",
         samples=S.vrcsr_samples, oversize=S.vrcsr_oversize),
     Target(
         "vesc-can", "VESC CAN frames (ESC side): vesc_can.decode, frames from SocketCAN records",
-        make=A.VescCanNode, feed=A.vesc_can_feed, buffered=lambda n: n.link.buffered_bytes,
-        bound=A.CAN_RECORD_SIZE - 1, measure="a partial CAN record (decode keeps nothing)",
-        samples=S.vesc_can_samples, oversize=S.vesc_can_oversize, unit=A.CAN_RECORD_SIZE),
+        make=A.driven(lambda: A.PerFrame(vesc_can.decode), L.CanRecords), bound=L.CAN_RECORD_SIZE - 1,
+        measure="a partial CAN record (decode keeps nothing)",
+        samples=S.vesc_can_samples, oversize=S.vesc_can_oversize, unit=L.CAN_RECORD_SIZE),
     Target(
         "dronecan", "DroneCAN transfers (ESC side): dronecan.TransferReceiver, frames from SocketCAN records",
-        make=A.DroneCanNode, feed=A.dronecan_feed, buffered=A.dronecan_buffered,
+        make=A.driven(dronecan.TransferReceiver, L.CanRecords,
+                      then=lambda t: dronecan.decode_message(t.dtid, t.payload)),
         bound=dronecan.TransferReceiver.max_sessions * (dronecan.TransferReceiver.max_payload + 2)
-        + A.CAN_RECORD_SIZE - 1,
-        measure="payload bytes of the open sessions (TransferReceiver._sessions) + a partial CAN record",
-        samples=S.dronecan_samples, seeds=S.dronecan_seeds, oversize=S.dronecan_oversize, unit=A.CAN_RECORD_SIZE),
+        + L.CAN_RECORD_SIZE - 1,
+        measure="TransferReceiver.buffered_bytes (payload bytes of the open sessions) + a partial CAN record",
+        samples=S.dronecan_samples, seeds=S.dronecan_seeds, oversize=S.dronecan_oversize, unit=L.CAN_RECORD_SIZE),
     Target(
-        "modbus-tcp", "Modbus TCP requests (device side): links.modbus.TcpSession (pymodbus FramerSocket)",
-        make=A.ModbusTcpConnection, feed=A.tcp_feed, buffered=lambda c: len(c.session.buffer),
-        bound=6 + mb.MAX_TCP_LENGTH - 1, measure="TcpSession.buffer (an unfinished ADU)",
+        "modbus-tcp", "Modbus TCP requests (device side): modbus_device.TcpSession (modbus.TcpRequestDecoder)",
+        make=lambda: mb.TcpSession(A.keller_target()), feed=A.tcp_feed, buffered=lambda s: len(s.buffer),
+        bound=6 + modbus.MAX_TCP_LENGTH - 1, measure="TcpSession.buffer (an unfinished ADU)",
         samples=S.tcp_samples, oversize=S.tcp_oversize,
         no_resync="a header that is not Modbus TCP closes the connection, as real devices do (the client "
                   "reconnects); MBAP has no marker to resynchronise on",
         no_resync_after_truncation="TCP does not lose bytes: a cut ADU swallows the start of the next one "
                                    "and the misread header closes the connection"),
     Target(
-        "modbus-rtu", "Modbus RTU requests (device side): links.modbus.RtuSession (request lengths by function code)",
-        make=A.ModbusRtuLine, feed=A.rtu_feed, gap=A.rtu_silence, buffered=lambda line: len(line.session.buffer),
-        bound=mb.MAX_RTU_ADU, measure="RtuSession.buffer", samples=S.rtu_samples, seeds=S.rtu_seeds,
-        oversize=S.rtu_oversize,
-        pipelined=True),
+        "modbus-rtu", "Modbus RTU requests (device side): modbus_device.RtuSession (modbus.RtuRequestDecoder)",
+        make=lambda: mb.RtuSession([A.keller_target()]), feed=A.rtu_feed, gap=A.rtu_silence,
+        buffered=lambda s: len(s.buffer), bound=modbus.MAX_RTU_ADU, measure="RtuSession.buffer",
+        samples=S.rtu_samples, seeds=S.rtu_seeds, oversize=S.rtu_oversize),
 ]}
 
 
