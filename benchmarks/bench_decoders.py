@@ -40,7 +40,10 @@ sys.path.insert(0, str(ROOT))
 def load(name: str, folder: Path | None) -> ModuleType:
     if folder is None:
         return importlib.import_module(f"hilsim.protocols.{name}")
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", folder / f"{name}.py")
+    path = folder / f"{name}.py"
+    if not path.exists():  # a package since the split (aris/): its command channel
+        path = folder / name / "commands.py"
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up
@@ -108,10 +111,11 @@ def run(make: Callable[[], Any], feed: Callable[[Any, bytes], int], data: bytes,
 
 
 def drainer(need: object) -> Callable[[Any, bytes], int]:
+    """Feed, then drain until ``need`` (the module's NEED_DATA; older ARIS readers returned None)."""
     def feed(dec: Any, data: bytes) -> int:
         dec.receive_data(data)
         k = 0
-        while dec.next_event() is not need:
+        while (ev := dec.next_event()) is not need and ev is not None:
             k += 1
         return k
 
@@ -123,14 +127,15 @@ def main() -> None:
     ap.add_argument("--bytes", type=int, default=200_000, help="bytes per case (default 200000)")
     ap.add_argument("--seconds", type=float, default=5.0, help="time limit per case [s] (default 5)")
     ap.add_argument("--modules", type=Path, default=None,
-                    help="load vesc_uart.py, vrcsr.py and aris.py from this folder instead of hilsim.protocols")
+                    help="load vesc_uart.py, vrcsr.py and aris.py (or the aris/ package's commands.py) from this "
+                         "folder instead of hilsim.protocols")
     args = ap.parse_args()
 
     vu, vr, ar = (load(m, args.modules) for m in ("vesc_uart", "vrcsr", "aris"))
     cases = [
         ("VESC UART", vu.PacketDecoder, drainer(vu.NEED_DATA), vesc_inputs(vu, args.bytes)),
         ("VRCSR", vr.PacketDecoder, drainer(vr.NEED_DATA), vrcsr_inputs(vr, args.bytes)),
-        ("ARIS commands", ar.CommandReader, drainer(None), aris_inputs(ar, args.bytes)),
+        ("ARIS commands", ar.CommandReader, drainer(getattr(ar, "NEED_DATA", None)), aris_inputs(ar, args.bytes)),
     ]
     print(f"decoders from {args.modules or 'hilsim.protocols'}; up to {args.bytes} bytes or "
           f"{args.seconds:g} s per case")
