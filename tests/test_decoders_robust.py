@@ -208,7 +208,8 @@ def test_every_decoder_has_a_target() -> None:
     """The issue's list, once: DDF (stream and commands), Oculus, ARIS (commands, frames), socketcand,
     slcan, VESC CAN and UART, DroneCAN, VRCSR, Modbus TCP and RTU requests through pymodbus."""
     assert set(TARGETS) == {"ddf-stream", "ddf-commands", "oculus", "aris-commands", "aris-frames", "socketcand",
-                            "slcan", "vesc-uart", "vrcsr", "vesc-can", "dronecan", "modbus-tcp", "modbus-rtu"}
+                            "slcan", "vesc-uart", "vrcsr", "vesc-can", "dronecan", "modbus-tcp", "modbus-rtu",
+                            "keller-bus", "witmotion-commands", "witmotion-packets"}
     for t in TARGETS.values():
         assert t.samples() and t.oversize() and t.bound > 0 and t.measure
 

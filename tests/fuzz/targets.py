@@ -35,9 +35,11 @@ from typing import Any, Callable, Sequence
 
 from hilsim.protocols import aris, ddf, ddf_commands, dronecan, modbus, oculus, slcan, socketcand, vesc_can, vesc_uart, vrcsr
 from hilsim.protocols import modbus_device as mb
+from hilsim.protocols import keller_bus, witmotion_uart
 from tests.fuzz import adapters as A
 from tests.fuzz import links as L
 from tests.fuzz import samples as S
+from tests.fuzz import samples_serial_sensors as SS
 from tests.fuzz.adapters import Closed, Events, PeerError, Reply
 from tests.fuzz.events import Canon, badly_typed
 from tests.fuzz.samples import Sample
@@ -248,6 +250,22 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
         make=lambda: mb.RtuSession([A.keller_target()]), feed=A.rtu_feed, gap=A.rtu_silence,
         buffered=lambda s: len(s.buffer), bound=modbus.MAX_RTU_ADU, measure="RtuSession.buffer",
         samples=S.rtu_samples, seeds=S.rtu_seeds, oversize=S.rtu_oversize),
+    Target(
+        "keller-bus", "KELLER bus requests (transmitter side): keller_bus.KellerRequestDecoder",
+        make=A.driven(keller_bus.KellerRequestDecoder), gap=lambda d: list(d.decoder.silence()),
+        bound=keller_bus.MAX_FRAME, measure="KellerRequestDecoder.buffered_bytes",
+        samples=SS.keller_samples, oversize=SS.keller_oversize, chunk_dependent=(keller_bus.Junk,)),
+    Target(
+        "witmotion-commands", "WitMotion UART commands FF AA (IMU side): witmotion_uart.CommandDecoder",
+        make=A.driven(witmotion_uart.CommandDecoder), gap=lambda d: list(d.decoder.silence()),
+        bound=witmotion_uart.COMMAND_SIZE - 1, measure="CommandDecoder.buffered_bytes",
+        samples=SS.witmotion_command_samples, oversize=lambda: SS.head_oversize(b"\xff\xaa"),
+        chunk_dependent=(witmotion_uart.Junk,)),
+    Target(
+        "witmotion-packets", "WitMotion UART 0x55 packets (host side): witmotion_uart.PacketDecoder",
+        make=A.driven(witmotion_uart.PacketDecoder), bound=witmotion_uart.PACKET_SIZE - 1,
+        measure="PacketDecoder.buffered_bytes", samples=SS.witmotion_packet_samples,
+        oversize=lambda: SS.head_oversize(b"\x55\x53"), chunk_dependent=(witmotion_uart.Junk,)),
 ]}
 
 
