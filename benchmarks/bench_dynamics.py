@@ -10,6 +10,9 @@
    running in the callback), with a busy-loop process on the other core
    (bounded in time, killed at the end). Goal: p99 <= 1 ms at 200 Hz.
 
+3. The 6-DOF BlueROV2 model (Heavy, 8 thrusters) at 200, 50 and 1200 Hz (ArduPilot's
+   lockstep rate), and the 6-thruster BlueROV2 (``report_6dof``; ``--6dof`` runs only it).
+
 Run: ``.venv/bin/python benchmarks/bench_dynamics.py`` (under a minute).
 """
 
@@ -101,6 +104,34 @@ def scheduler_only(seconds: float) -> float:
     return seconds * RATE / (time.perf_counter() - start)
 
 
+def physics_6dof(seconds: float, rate: float = RATE, profile: str = "bluerov2_heavy") -> float:
+    """Steps/s of the 6-DOF model (a BlueROV2 profile, all thrusters with lag and watchdog,
+    RK4 on 12 states) with the commands of :func:`physics_manoeuvre`: every DOF moving."""
+    prof = load_vehicle_profile(ROOT / "devices" / "vehicles" / f"{profile}.toml")
+    vehicle, thrusters = Vehicle(prof), prof.thruster_set()
+    state, dt, n_th = VehicleState(position=np.array([0.0, 0.0, 5.0])), 1.0 / rate, len(prof.thrusters)
+    n = int(seconds * rate)
+    every = max(1, int(rate / 10))
+    plan = [[0.15 + 0.45 * math.sin(0.9 * k * dt + 1.3 * i) for i in range(n_th)] for k in range(0, n, every)]
+    start = time.perf_counter()
+    for k in range(n):
+        if k % every == 0:
+            thrusters.command_all("normalized", plan[k // every], state.time)
+        state = vehicle.step_with_thrusters(state, dt, thrusters)
+    return n / (time.perf_counter() - start)
+
+
+def report_6dof() -> None:
+    """The 6-DOF BlueROV2 lines (issue #19; goal: Heavy with 8 thrusters >= 1000x real time)."""
+    physics_6dof(2.0)  # warm up
+    print("physics, 6-DOF BlueROV2 Heavy + 8 thrusters, all DOFs moving:")
+    for rate in (RATE, 50.0, 1200.0):
+        sps = max(physics_6dof(10.0 if rate < 1000 else 4.0, rate) for _ in range(2))
+        print(f"  at {rate:6.0f} Hz {sps:9.0f} steps/s = {sps / rate:6.0f}x real time   ({1e6 / sps:.1f} us/step)")
+    sps = max(physics_6dof(10.0, RATE, "bluerov2") for _ in range(2))
+    print(f"  BlueROV2 (6 thrusters) at {RATE:g} Hz {sps:9.0f} steps/s = {sps / RATE:6.0f}x real time")
+
+
 def start_busy(seconds: float) -> subprocess.Popen[bytes]:
     """A busy-loop process pinned to the other core, ending by itself after ``seconds``."""
     code = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
@@ -149,6 +180,7 @@ def main() -> None:
     print(f"  vehicle.step only{body:9.0f} steps/s = {body / RATE:6.0f}x real time   ({1e6 / body:.1f} us/step)")
     print(f"  at 50 Hz physics {coarse:9.0f} steps/s = {coarse / 50.0:6.0f}x real time"
           "   (20 ms steps: RK4 error vs reference < 1e-7)")
+    report_6dof()
     print(f"  load average {os.getloadavg()[0]:.2f} (other processes share these cores)")
     busy = start_busy(45.0)
     try:
@@ -166,4 +198,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    if "--6dof" in sys.argv:
+        report_6dof()
+    else:
+        main()
