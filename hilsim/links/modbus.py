@@ -29,11 +29,12 @@ import asyncio
 import logging
 import time
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 from hilsim.links.pty import PtyLink
 from hilsim.links.tcp import Client, TcpServer
-from hilsim.protocols.modbus import MAX_RTU_ADU, MAX_TCP_LENGTH, RTU_NEED_MORE, RTU_UNDELIMITED, rtu_request_length
+from hilsim.protocols.modbus import (MAX_RTU_ADU, MAX_TCP_LENGTH, RTU_NEED_MORE, RTU_UNDELIMITED, RtuDialect,
+                                     rtu_request_length)
 from hilsim.protocols.modbus_device import ModbusStats, ModbusTarget, RtuSession, TcpSession, WriteAction
 
 log = logging.getLogger(__name__)
@@ -181,6 +182,13 @@ class ModbusRtuServer:
                 raise ValueError(f"{self.name}: address {target.device_id} already used by {t.name}")
         self.session.targets.append(target)
 
+    def add_dialect(self, dialect: RtuDialect, handler: Callable[[bytes], bytes | None]) -> None:
+        """Serve another protocol beside Modbus on this line, told by function code (the KELLER bus)."""
+        self.session.add_dialect(dialect, handler)
+
+    def remove_dialect(self, handler: Callable[[bytes], bytes | None]) -> None:
+        self.session.remove_dialect(handler)
+
     def detach(self, target: ModbusTarget) -> None:
         if target in self.session.targets:
             self.session.targets.remove(target)
@@ -208,5 +216,62 @@ class ModbusRtuServer:
             self.link.write(frame)
 
 
+
+class SerialLineTcpServer:
+    """The RTU line on ``host:port`` as a serial device server passes it on (an RS-485 to
+    Ethernet converter in TCP-server raw mode): each client's bytes are a serial line of
+    their own, Modbus RTU frames and the line's other dialect (the KELLER bus) alike, with
+    the same targets and dialect handlers as the pty line ``line``. A pause of ``gap`` [s]
+    in a client's bytes ends a frame, as silence on the wire does."""
+
+    def __init__(self, name: str, line: ModbusRtuServer, host: str = "127.0.0.1", port: int = 0, *,
+                 max_clients: int = 8, gap: float = 0.005, idle_timeout: float | None = None):
+        self.name = name
+        self.line = line
+        self.gap = float(gap)
+        self.stats = ModbusStats()
+        self.link = TcpServer(name, host, port, max_clients=max_clients, read_size=1024,
+                              idle_timeout=idle_timeout, on_connect=self._on_connect, on_data=self._on_data,
+                              on_disconnect=self._on_disconnect)
+
+    @property
+    def address(self) -> str:
+        return self.link.address
+
+    async def start(self) -> tuple[str, int]:
+        return await self.link.start()
+
+    async def close(self) -> None:
+        await self.link.close()
+
+    def _on_connect(self, client: Client) -> None:
+        session = RtuSession(self.line.session.targets, self.stats)  # the same targets (a shared list)
+        session.foreign = self.line.session.foreign                  # ... and dialect handlers
+        session.decoder.dialect = self.line.session.decoder.dialect
+        client.state["session"] = session
+        client.state["timer"] = None
+
+    def _on_disconnect(self, client: Client) -> None:
+        timer = client.state.get("timer")
+        if timer is not None:
+            timer.cancel()
+
+    def _write(self, client: Client, frames: list[bytes]) -> None:
+        if frames and not client.closed and not client.writer.transport.is_closing():
+            client.writer.write(b"".join(frames))
+
+    def _on_data(self, client: Client, data: bytes) -> None:
+        session: RtuSession = client.state["session"]
+        session.decoder.dialect = self.line.session.decoder.dialect
+        self._write(client, session.receive_data(data))
+        if client.state["timer"] is not None:
+            client.state["timer"].cancel()
+        client.state["timer"] = asyncio.get_running_loop().call_later(self.gap, self._on_silence, client)
+
+    def _on_silence(self, client: Client) -> None:
+        client.state["timer"] = None
+        self._write(client, client.state["session"].silence())
+
+
 __all__ = ["MAX_RTU_ADU", "MAX_TCP_LENGTH", "RTU_NEED_MORE", "RTU_UNDELIMITED", "ModbusRtuServer", "ModbusStats", "ModbusTarget", "ModbusTcpServer",
-           "RtuSession", "TcpSession", "WriteAction", "rtu_request_length"]
+           "RtuSession", "SerialLineTcpServer", "TcpSession", "WriteAction", "rtu_request_length"]

@@ -294,6 +294,31 @@ class KellerRequestDecoder:
         return BadFrame("bad CRC or too short (discarded)", frame[:32])
 
 
+def request_from_frame(frame: bytes) -> Union[KellerRequest, WrongLength]:
+    """A whole frame whose CRC checked out (from a line shared with Modbus) as the event the
+    responder takes: a length its function does not have is :class:`WrongLength`."""
+    lengths = REQUEST_LENGTHS.get(frame[1], ())
+    if lengths and len(frame) not in lengths:
+        return WrongLength(f"F{frame[1]}: {len(frame)} bytes", bytes(frame[:32]), frame[0], frame[1])
+    return KellerRequest(frame[0], frame[1], bytes(frame[2:-2]))
+
+
+class KellerDialect:
+    """The KELLER bus as the dialect of a Modbus RTU line (:class:`hilsim.protocols.modbus.RtuDialect`)."""
+
+    def owns(self, function: int) -> bool:
+        return is_keller_function(function)
+
+    def request_length(self, buf: Union[bytes, bytearray], pos: int) -> int:
+        return keller_request_length(buf, pos)
+
+    def crc_ok(self, buf: Union[bytes, bytearray], start: int, end: int) -> bool:
+        return crc_ok(buf, start, end)
+
+
+DIALECT: Final = KellerDialect()
+
+
 # ----------------------------------------------------------------------------- replies
 
 def encode_exception(address: int, function: int, code: int) -> bytes:
@@ -392,6 +417,10 @@ class KellerResponder:
         """A request to ``address`` is ours (broadcast 0 is executed without a reply)."""
         return address in (self.get_address(), TRANSPARENT, BROADCAST)
 
+    def handle_frame(self, frame: bytes) -> Optional[bytes]:
+        """The reply to a whole frame from a shared line (its CRC already checked), or None."""
+        return self.handle(request_from_frame(frame))
+
     def handle(self, event: Union[KellerRequest, WrongLength]) -> Optional[bytes]:
         """The reply frame to ``event``, or None (another device's address, or broadcast)."""
         address = event.address
@@ -401,7 +430,8 @@ class KellerResponder:
         self.requests += 1
         function = event.function
         try:
-            if isinstance(event, WrongLength):
+            lengths = REQUEST_LENGTHS.get(function, ())
+            if isinstance(event, WrongLength) or (lengths and len(event.data) + 4 not in lengths):
                 if function != 48 and not self.initialised:
                     raise KellerError(EXC_NOT_INITIALISED)
                 raise KellerError(EXC_LENGTH, f"F{function}: wrong length")
@@ -472,4 +502,5 @@ __all__ = ["BROADCAST", "CHANNELS", "EXC_CHANNEL", "EXC_FUNCTION", "EXC_LENGTH",
            "EXC_PARAMETER", "Identity", "KellerError", "KellerRequest", "KellerRequestDecoder", "KellerResponder",
            "MAX_FRAME", "NEED_MORE", "REQUEST_LENGTHS", "TRANSPARENT", "UNDELIMITED", "WrongLength", "crc16",
            "crc_ok", "encode_exception", "encode_f48", "encode_f66", "encode_f69", "encode_f73", "encode_f74",
-           "encode_f95", "encode_frame", "is_keller_function", "keller_request_length"]
+           "encode_f95", "encode_frame", "is_keller_function", "keller_request_length", "DIALECT", "KellerDialect",
+           "request_from_frame"]

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Final, Union
+from typing import Final, Optional, Protocol, Union
 
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU
@@ -140,8 +140,29 @@ class Malformed(codec.BadFrame):
     :data:`MAX_RTU_ADU` bytes."""
 
 
+@dataclass(frozen=True)
+class ForeignFrame:
+    """A frame of the other protocol sharing the RTU line (:class:`RtuDialect`), whole (CRC included)."""
+
+    frame: bytes
+
+
+class RtuDialect(Protocol):
+    """Another protocol on the same serial line, told from Modbus by its function codes, as a
+    KELLER Series 30 serves the KELLER bus beside Modbus RTU (:mod:`hilsim.protocols.keller_bus`)."""
+
+    def owns(self, function: int) -> bool:
+        """A request with this function code is the dialect's."""
+
+    def request_length(self, buf: bytes | bytearray, pos: int) -> int:
+        """As :func:`rtu_request_length`, for the dialect's function codes."""
+
+    def crc_ok(self, buf: bytes | bytearray, start: int, end: int) -> bool:
+        """``buf[start:end]`` ends with a good check in the dialect's byte order."""
+
+
 TcpEvent = Union[Request, NotModbusTcp]
-RtuEvent = Union[Request, CrcError, Malformed]
+RtuEvent = Union[Request, CrcError, Malformed, ForeignFrame]
 
 
 # ------------------------------------------------------------------ Modbus TCP
@@ -202,9 +223,12 @@ class TcpRequestDecoder:
 class RtuRequestDecoder:
     """RTU byte stream (and the line's silences) -> :class:`Request`, :class:`CrcError`,
     :class:`Malformed`. Call :meth:`silence` when the line has been idle for 3.5 characters
-    (even with nothing buffered), then drain."""
+    (even with nothing buffered), then drain. ``dialect``: another protocol on the line; its
+    frames (by its length rule and check, or the bytes before a silence when only its check
+    holds) come as :class:`ForeignFrame`."""
 
-    def __init__(self) -> None:
+    def __init__(self, dialect: Optional[RtuDialect] = None) -> None:
+        self.dialect = dialect
         self.buffer = bytearray()  # unconsumed bytes once drained
         self._pos = 0
         self._resyncing = False
@@ -239,10 +263,16 @@ class RtuRequestDecoder:
             avail = len(buf) - pos
             if avail <= 0:
                 break
-            n = rtu_request_length(buf, pos)
+            dialect = self.dialect if self.dialect is not None and avail >= 2 and self.dialect.owns(buf[pos + 1]) \
+                else None
+            n = rtu_request_length(buf, pos) if dialect is None else dialect.request_length(buf, pos)
             if 0 < n <= avail:  # a complete frame by the length rules
                 end = pos + n
-                if _crc_ok(buf, pos, end):
+                if dialect is not None and dialect.crc_ok(buf, pos, end):
+                    self._resyncing = False
+                    self._pos = end
+                    return ForeignFrame(bytes(buf[pos:end]))
+                if dialect is None and _crc_ok(buf, pos, end):
                     self._resyncing = False
                     self._pos = end
                     return Request(buf[pos], bytes(buf[pos + 1:end - 2]))
@@ -268,6 +298,8 @@ class RtuRequestDecoder:
                 return Malformed(f"a frame of {avail} bytes", bytes(buf[pos:]))
             if _crc_ok(buf, pos, len(buf)):
                 return Request(buf[pos], bytes(buf[pos + 1:len(buf) - 2]))
+            if self.dialect is not None and self.dialect.crc_ok(buf, pos, len(buf)):
+                return ForeignFrame(bytes(buf[pos:]))  # the dialect's device answers (a wrong length...)
             self._resyncing = True  # garbled, or frames run together: look inside for good ones
             self._pos = pos + 1
             return CrcError("bad CRC", bytes(buf[pos:pos + MAX_RTU_ADU]))
@@ -280,5 +312,5 @@ class RtuRequestDecoder:
 
 
 __all__ = ["MAX_RTU_ADU", "MAX_TCP_LENGTH", "NEED_DATA", "REQUEST_DECODER", "RTU_MIN_SIZE", "RTU_NEED_MORE",
-           "RTU_UNDELIMITED", "CrcError", "Malformed", "NotModbusTcp", "Request", "RtuEvent",
+           "RTU_UNDELIMITED", "CrcError", "ForeignFrame", "Malformed", "RtuDialect", "NotModbusTcp", "Request", "RtuEvent",
            "RtuRequestDecoder", "TcpEvent", "TcpRequestDecoder", "rtu_request_length"]

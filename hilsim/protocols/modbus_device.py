@@ -39,9 +39,11 @@ from hilsim.protocols.codec import NEED_DATA
 from hilsim.protocols.modbus import (
     REQUEST_DECODER,
     CrcError,
+    ForeignFrame,
     Malformed,
     NotModbusTcp,
     Request,
+    RtuDialect,
     RtuRequestDecoder,
     TcpRequestDecoder,
 )
@@ -268,6 +270,8 @@ class RtuSession:
     depend only on the byte stream and where the line went idle); ``silence()``
     (the line idle for 3.5 characters) -> the replies to what that ends. The
     framing and its resynchronisation are :class:`~hilsim.protocols.modbus.RtuRequestDecoder`'s.
+    Another protocol on the line (:meth:`add_dialect`: the KELLER bus) is told by function code
+    and its frames go to its handlers (each returns its reply frame or None).
     """
 
     def __init__(self, targets: Iterable[ModbusTarget] = (), stats: ModbusStats | None = None):
@@ -275,6 +279,18 @@ class RtuSession:
         self.stats = stats if stats is not None else ModbusStats()
         self.decoder = RtuRequestDecoder()
         self.framer = FramerRTU(_DECODER)  # replies are built with pymodbus's encoder
+        self.foreign: list[Callable[[bytes], bytes | None]] = []
+
+    def add_dialect(self, dialect: RtuDialect, handler: Callable[[bytes], bytes | None]) -> None:
+        """Serve ``dialect`` beside Modbus on this line: its frames go to ``handler``."""
+        self.decoder.dialect = dialect
+        self.foreign.append(handler)
+
+    def remove_dialect(self, handler: Callable[[bytes], bytes | None]) -> None:
+        if handler in self.foreign:
+            self.foreign.remove(handler)
+        if not self.foreign:
+            self.decoder.dialect = None
 
     @property
     def buffer(self) -> bytearray:
@@ -315,6 +331,9 @@ class RtuSession:
                     self.stats.crc_errors += 1
                 elif isinstance(ev, Malformed):
                     self.stats.malformed += 1
+                elif isinstance(ev, ForeignFrame):
+                    replies = [r for r in (h(ev.frame) for h in list(self.foreign)) if r]
+                    out += replies[:1]  # one device answers (two on the transparent address would collide)
                 else:
                     reply = self._dispatch(ev.unit, ev.pdu)
                     if reply is not None:

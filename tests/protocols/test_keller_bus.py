@@ -292,3 +292,43 @@ def test_keller_protocol_package_over_a_pty(pty_device: tuple[str, Sensor]) -> N
     assert dev.address == 42 and bus.f69(42) == dev.serial
     with pytest.raises(ConnectionRefusedError):
         bus.f69(1)                                       # the old address is silent now
+
+
+# ----------------------------------------------------------------------------- one line, two protocols
+
+def test_keller_bus_beside_modbus_on_one_rtu_line() -> None:
+    """The Series 30 serves both protocols on one line, told by function code: a Modbus RTU
+    read (CRC low byte first) and KELLER bus requests (CRC high byte first) in one stream."""
+    from hilsim.protocols.modbus_device import ModbusTarget, RtuSession
+    from hilsim.protocols.registers import RegisterImage, load_map
+    from hilsim.resources import data_path
+
+    image = RegisterImage(load_map(data_path("protocols", "keller_serie30.toml")))
+    image.update({"pressure": 2.5e5, "temperature": 288.15})
+    target = ModbusTarget(image, actions={"set_zero": lambda register, value: None})
+    dev = Sensor()
+    resp = dev.responder()
+    session = RtuSession([target])
+    session.add_dialect(kb.DIALECT, resp.handle_frame)
+
+    def modbus(*body: int) -> bytes:
+        crc = ref_crc(bytes(body))
+        return bytes(body) + bytes([crc & 0xFF, crc >> 8])     # Modbus: CRC low byte first
+
+    read_p1 = modbus(1, 3, 0x00, 0x02, 0x00, 0x02)
+    stream = read_p1 + ref_frame(250, 73, 1) + ref_frame(250, 48) + ref_frame(1, 73, 1) + read_p1
+    for cut in (len(stream), 1, 5):
+        resp.power_up()
+        replies: list[bytes] = []
+        for i in range(0, len(stream), cut):
+            replies += session.receive_data(stream[i:i + cut])
+        replies += session.silence()
+        assert len(replies) == 5
+        m = replies[0]
+        assert m[:3] == bytes([1, 3, 4]) and ref_crc(m[:-2]) == m[-2] | m[-1] << 8  # Modbus CRC order
+        assert struct.unpack(">f", m[3:7])[0] == pytest.approx(2.5, rel=1e-6)   # Modbus needs no F48
+        assert ref_parse_reply(replies[1]) == (250, 73 | 0x80, bytes([32]))       # KELLER: not yet
+        assert ref_parse_reply(replies[2])[1] == 48
+        _, fn, data = ref_parse_reply(replies[3])
+        assert fn == 73 and struct.unpack(">f", data[:4])[0] == pytest.approx(2.5, rel=1e-6)
+        assert replies[4] == m
