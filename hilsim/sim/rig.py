@@ -10,7 +10,8 @@ from hilsim.sim.scenario import Scenario, SensorMount
 from hilsim.sim.sonar import ImagingSonar
 from hilsim.sim.sonar_profile import load_sonar_profile
 
-PROFILE_FOLDER = {"sonar": "sonars", "camera": "cameras", "depth": "sensors", "imu": "sensors"}
+PROFILE_FOLDER = {"sonar": "sonars", "camera": "cameras", "depth": "sensors", "imu": "sensors", "dvl": "sensors",
+                  "gnss": "sensors", "echosounder": "sensors"}
 
 
 def profile_path(scenario: Scenario, mount: SensorMount) -> Path:

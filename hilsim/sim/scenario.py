@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off", ".dae")
 PRIMITIVES = ("box", "cylinder", "sphere", "plane", "terrain")
-SENSOR_KINDS = ("sonar", "camera", "depth", "imu")
+SENSOR_KINDS = ("sonar", "camera", "depth", "imu", "dvl", "gnss", "echosounder")
 # how a mesh file's axes map to NED (x north, y east, z down)
 _UP_AXES: dict[str, np.ndarray] = {
     "z": np.diag([1.0, -1.0, -1.0]),                        # Z up (Blender, most OBJ/STL/PLY)
@@ -37,7 +37,9 @@ _UP_AXES: dict[str, np.ndarray] = {
 }
 
 _TOP_KEYS = ("name", "description", "seed", "water", "materials", "objects", "vehicle", "sensors",
-             "positions", "devices", "links", "physics", "timeline")
+             "positions", "devices", "links", "physics", "timeline", "world")
+_WORLD_KEYS = ("origin", "description")
+_ORIGIN_KEYS = ("lat_deg", "lon_deg", "alt_m")
 _WATER_KEYS = ("impedance_Pa_s_m", "sound_speed_m_s", "density_kg_m3", "attenuation_per_m", "color")
 _MATERIAL_KEYS = ("impedance_Pa_s_m", "color", "acoustic_absorption", "optical_absorption", "description")
 _OBJECT_KEYS = ("name", "material", "materials", "mesh", "primitive", "position_m", "orientation_deg",
@@ -74,6 +76,19 @@ class NamedPosition:
     description: str = ""
 
 
+@dataclass(frozen=True)
+class GeodeticOrigin:
+    """Where the world frame's origin (NED x = y = z = 0, the water surface) is on the Earth:
+    WGS84 latitude and longitude [deg], altitude above mean sea level [m]."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float = 0.0
+
+
+DEFAULT_ORIGIN = GeodeticOrigin(0.0, 0.0, 0.0)
+
+
 @dataclass
 class Scenario:
     """A loaded, validated scenario (the description; the World is built from it)."""
@@ -89,6 +104,7 @@ class Scenario:
     positions: dict[str, NamedPosition]
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    origin: GeodeticOrigin | None = None   # [world] origin; None: not given (GNSS then uses 0 N 0 E)
 
     @property
     def folder(self) -> Path:
@@ -397,6 +413,21 @@ def _load_positions(doc: Doc) -> dict[str, NamedPosition]:
     return out
 
 
+def _load_origin(doc: Doc) -> GeodeticOrigin | None:
+    """``[world] origin = {lat_deg = .., lon_deg = .., alt_m = ..}`` (alt_m optional, 0)."""
+    if "world" not in doc.data:
+        return None
+    t = _table(doc, doc.data["world"], "world")
+    check_keys(doc, t, _WORLD_KEYS, "world")
+    if "origin" not in t:
+        return None
+    o = _table(doc, t["origin"], "world.origin")
+    check_keys(doc, o, _ORIGIN_KEYS, "world.origin")
+    return GeodeticOrigin(number(doc, o, "lat_deg", "world.origin", lo=-90.0, hi=90.0),
+                          number(doc, o, "lon_deg", "world.origin", lo=-180.0, hi=180.0),
+                          number(doc, o, "alt_m", "world.origin", 0.0, lo=-500.0, hi=9000.0))
+
+
 def load_scenario(path: Path | str) -> Scenario:
     """Read and validate a scenario file; meshes are loaded and placed in NED.
 
@@ -421,7 +452,8 @@ def load_scenario(path: Path | str) -> Scenario:
         positions=_load_positions(doc),
         raw=doc.data,
         warnings=warnings,
+        origin=_load_origin(doc),
     )
 
 
-__all__ = ["ConfigError", "NamedPosition", "Scenario", "SensorMount", "VehicleSpec", "load_scenario"]
+__all__ = ["ConfigError", "DEFAULT_ORIGIN", "GeodeticOrigin", "NamedPosition", "Scenario", "SensorMount", "VehicleSpec", "load_scenario"]
