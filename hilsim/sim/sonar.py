@@ -52,6 +52,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,6 +69,7 @@ from hilsim.sim.state import VehicleState
 from hilsim.sim.world import World
 
 U8 = NDArray[np.uint8]
+F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
 
 # -3 dB point of sinc^2(x) = sin^2(pi x) / (pi x)^2: sinc^2(0.4429) = 1/2
@@ -136,11 +138,16 @@ def fixed_gain_levels(intensity: F64, ranges: F64, settings: SonarSettings, refe
     a perfect reflector at 1 m and normal incidence filling the beam.
     """
     dr = settings.dynamic_range_db
-    with np.errstate(divide="ignore"):
-        level = 10.0 * np.log10(intensity / reference)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        level = np.log10(intensity / reference)
+    level *= 10.0
     level += (tvg_db(ranges, settings, absorption_db_per_m) + settings.gain_db)[:, None]
-    px = np.rint((level + dr) * (255.0 / dr))
-    return np.clip(np.nan_to_num(px, nan=0.0, neginf=0.0), 0.0, 255.0).astype(np.uint8)
+    level += dr
+    level *= 255.0 / dr
+    px = np.rint(level, out=level)
+    np.fmax(px, 0.0, out=px)    # -inf (an empty cell) and nan -> 0
+    np.fmin(px, 255.0, out=px)
+    return px.astype(np.uint8)
 
 
 def paper_gain_levels(intensity: F64) -> U8:
@@ -151,7 +158,7 @@ def paper_gain_levels(intensity: F64) -> U8:
     return np.clip(np.rint(intensity * (255.0 / top)), 0, 255).astype(np.uint8)
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=32)
 def _ray_fan(az_lo: float, az_hi: float, n_beams: int, el_lo: float, el_hi: float,
              n_el: int) -> tuple[F64, F64, I64, float]:
     """Sensor-frame rays: dirs (n, 3), d(dirs)/d(phi) (n, 3), beam index (n,), dphi [rad].
@@ -172,6 +179,76 @@ def _ray_fan(az_lo: float, az_hi: float, n_beams: int, el_lo: float, el_hi: floa
     return dirs, ddphi, beam, dphi
 
 
+@dataclass(frozen=True)
+class _Fan:
+    """A ray fan's per-ray columns, contiguous (1-D ops on them run at memory speed).
+
+    dirs_t: (3, n) float directions, rows contiguous; d: 3 x (n,) float32 direction
+    components; e: 3 x (n,) float32 components of d(d)/d(phi); beam: (n,) beam index;
+    dphi [rad] the elevation step.
+    """
+
+    dirs_t: F64
+    d: tuple[F32, F32, F32]
+    e: tuple[F32, F32, F32]
+    beam: I64
+    dphi: float
+
+
+@lru_cache(maxsize=32)
+def _fan(az_lo: float, az_hi: float, n_beams: int, el_lo: float, el_hi: float, n_el: int) -> _Fan:
+    dirs, ddphi, beam, dphi = _ray_fan(az_lo, az_hi, n_beams, el_lo, el_hi, n_el)
+    dirs_t = np.ascontiguousarray(dirs.T)
+    d = dirs_t.astype(np.float32)
+    e = np.ascontiguousarray(ddphi.T, dtype=np.float32)
+    for a in (dirs_t, d, e):
+        a.setflags(write=False)
+    return _Fan(dirs_t, (d[0], d[1], d[2]), (e[0], e[1], e[2]), beam, dphi)
+
+
+# facet direction codes of World.tri_facet (hilsim.sim.world.facet_codes)
+_FACETS = ("north", "south", "east", "west", "down", "up")
+
+
+class _TriangleTables:
+    """Per-triangle values a frame gathers per ray, with one extra row at the end for a miss
+    (triangle index -1): ``refl`` (m + 1,) |reflection| (0 for a miss) and the world-frame
+    normal components ``n`` 3 x (m + 1,) (0 for a miss). Rebuilt when the world is."""
+
+    def __init__(self, world: World) -> None:
+        self.normals = world.tri_normal  # identity: World.rebuild makes new arrays
+        self.tri_object = world.tri_object
+        self.reflection = world.obj_reflection
+        m = len(world.tri_object)
+        self.refl = np.zeros(m + 1, dtype=np.float32)
+        if m:
+            self.refl[:m] = np.abs(world.obj_reflection)[world.tri_object]
+        self.normal = np.zeros((m + 1, 3))
+        self.normal[:m] = world.tri_normal
+        self.code = world.tri_object * len(_FACETS) + world.tri_facet
+
+    def current(self, world: World) -> bool:
+        return (self.normals is world.tri_normal and self.tri_object is world.tri_object
+                and self.reflection is world.obj_reflection)
+
+
+def _hit_counts(world: World, tables: _TriangleTables, tri: I64) -> dict[str, dict[str, int]]:
+    """``World.hit_counts`` from the triangle indices (n,) alone (one bincount per frame)."""
+    m = len(tables.code)
+    per_tri = np.bincount(tri + 1, minlength=m + 1)[1:]
+    seen = np.flatnonzero(per_tri)
+    out: dict[str, dict[str, int]] = {}
+    if seen.size == 0:
+        return out
+    counts = np.bincount(tables.code[seen], weights=per_tri[seen])
+    for code in np.flatnonzero(counts).tolist():
+        obj, facet = divmod(code, len(_FACETS))
+        d = out.setdefault(world.objects[obj].name, {"total": 0})
+        d["total"] += int(counts[code])
+        d[_FACETS[facet]] = int(counts[code])
+    return out
+
+
 @lru_cache(maxsize=8)
 def beam_pattern_matrix(azimuths: tuple[float, ...], beam_width: float) -> F64:
     """(n_beams, n_beams) leakage matrix K: ``out = intensity @ K``.
@@ -188,59 +265,69 @@ def beam_pattern_matrix(azimuths: tuple[float, ...], beam_width: float) -> F64:
     return k
 
 
-def _weighted_count(index: I64, weights: F64, size: int) -> F64:
+FLT = NDArray[np.floating[Any]]
+
+
+def _weighted_count(index: I64, weights: FLT, size: int) -> F64:
     """Sum of ``weights`` per ``index`` into a (size,) float array (np.bincount, no np.add.at)."""
     return np.bincount(index, weights=weights, minlength=size).astype(np.float64, copy=False)
 
 
-def spread_deposit(u: F64, width: F64, energy: F64, beam: I64, n_samples: int, n_beams: int) -> F64:
+def spread_deposit(u: F64, width: FLT, energy: FLT, beam: I64, n_samples: int, n_beams: int) -> F64:
     """Accumulate echoes spread uniformly over range intervals into cells.
 
     u: (h,) float in [0, n_samples), hit range in bin units (``(R - range_min) / dr``);
-    width: (h,) finite float >= 0, interval width [bins] centred on ``u``;
-    energy: (h,) float, echo of each ray; beam: (h,) int beam index.
+    width: (h,) finite float >= 0 (float32 or float64), interval width [bins] centred on ``u``;
+    energy: (h,) float (float32 or float64), echo of each ray; beam: (h,) int beam index.
     Returns (n_samples, n_beams) float: each ray's energy split across the bins
     its interval overlaps, in proportion to the overlap (all of it in one bin
     for a zero width); parts outside the window are lost. O(h + cells): the
     partial first and last bins are deposited directly and fully covered
     interior bins through a running sum (cells where no interval is open are
-    exactly zero).
+    exactly zero). Cells are numbered beam-major inside (a beam's rays land in
+    neighbouring cells: the sums run at cache speed); the result is (n_samples, n_beams).
     """
     ns, nb = n_samples, n_beams
     # pad bins on both sides take what falls outside the window; indices are shifted by +pad
     pad = int(np.ceil(0.5 * float(width.max(initial=0.0)))) + 1
     rows = ns + 2 * pad
+    size = rows * nb
     half = 0.5 * width
-    a = u - half
-    a += pad
-    b = u + half
-    b += pad
-    i0 = a.astype(np.int64)  # floor: a >= 1
-    i1 = b.astype(np.int64)
-    single = i1 == i0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        density = energy / width  # inf/nan only where width == 0, which is always single
-        lead = i0 + 1 - a
-        lead *= density
-    first = np.where(single, energy, lead)
-    total: F64 = _weighted_count(i0 * nb + beam, first, rows * nb)
+    # most intervals lie inside one bin (the bin of u): their whole energy goes there
+    iu = u.astype(np.int64)  # floor: u >= 0
+    frac = u - iu
+    lo = frac - half
+    hi = frac + half
+    single = lo >= 0.0
+    single &= hi < 1.0
+    base = beam * rows  # cell of (row i, beam b): b * rows + i
+    base += pad
+    iu += base
+    total: F64 = _weighted_count(iu, np.where(single, energy, 0.0), size)
     multi = np.flatnonzero(~single)
     if multi.size:
-        m0, m1, mb, md = i0[multi], i1[multi], beam[multi], density[multi]
-        last = md * (b[multi] - m1)
-        total += _weighted_count(m1 * nb + mb, last, rows * nb)
+        # the others: a partial first bin, a partial last bin and fully covered ones between
+        um, hm, mb = u[multi], half[multi], base[multi]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            md = energy[multi] / (2.0 * hm)
+        a = um - hm
+        b = um + hm
+        m0 = np.floor(a).astype(np.int64)
+        m1 = np.floor(b).astype(np.int64)
+        same = m1 == m0  # (rounding at a bin edge: inside one bin after all)
+        total += _weighted_count(mb + m0, np.where(same, energy[multi], (m0 + 1 - a) * md), size)
+        total += _weighted_count(mb + m1, np.where(same, 0.0, md * (b - m1)), size)
         inner = m1 > m0 + 1
         if inner.any():
             bi, dens = mb[inner], md[inner]
-            start = (m0[inner] + 1) * nb + bi
-            stop = m1[inner] * nb + bi
-            size = rows * nb
+            start = bi + m0[inner] + 1
+            stop = bi + m1[inner]
             run = _weighted_count(start, dens, size) - _weighted_count(stop, dens, size)
             cnt = np.bincount(start, minlength=size) - np.bincount(stop, minlength=size)
-            run = np.cumsum(run.reshape(rows, nb), axis=0)
-            is_open = np.cumsum(cnt.reshape(rows, nb), axis=0) > 0
+            run = np.cumsum(run.reshape(nb, rows), axis=1)
+            is_open = np.cumsum(cnt.reshape(nb, rows), axis=1) > 0
             total += np.where(is_open, run, 0.0).ravel()
-    return total.reshape(rows, nb)[pad:pad + ns]
+    return np.ascontiguousarray(total.reshape(nb, rows)[:, pad:pad + ns].T)
 
 
 class ImagingSonar:
@@ -260,6 +347,7 @@ class ImagingSonar:
         self.settings = settings if settings is not None else profile.default_settings()
         self.seed = int(profile.seed if seed is None else seed)
         self.frame_counter = 0
+        self._tables: _TriangleTables | None = None
 
     @property
     def azimuths(self) -> F64:
@@ -289,58 +377,80 @@ class ImagingSonar:
             frame_index = self.frame_counter
             self.frame_counter += 1
         nb, ns = p.n_beams, s.n_samples
-        dirs_s, ddphi_s, beam_all, dphi = _ray_fan(p.azimuth_limits[0], p.azimuth_limits[1], nb,
-                                                   p.elevation_limits[0], p.elevation_limits[1],
-                                                   s.elevation_rays)
+        fan = _fan(p.azimuth_limits[0], p.azimuth_limits[1], nb, p.elevation_limits[0], p.elevation_limits[1],
+                   s.elevation_rays)
         rot = np.asarray(pose.rotation, dtype=float)
-        dirs = dirs_s @ rot.T
+        dirs = (rot @ fan.dirs_t).T  # (n, 3) world-frame directions (a transposed view)
         n = dirs.shape[0]
         origins = np.broadcast_to(np.asarray(pose.position, dtype=float), (n, 3))
-        hits = world.cast(origins, dirs, t_min=s.range_min, t_max=s.range_max)
-        hit = hits.tri >= 0
+        r, tri = world.caster.intersect(origins, dirs, s.range_min, s.range_max)
+        hit = tri >= 0
         n_hits = int(np.count_nonzero(hit))
+        tables = self._tables
+        if tables is None or not tables.current(world):
+            tables = self._tables = _TriangleTables(world)
 
-        # Work on every ray in the sensor frame, column by column (1-D ops,
-        # no gathers of the hits). A miss has t = inf and a zero
-        # normal, so its echo comes out exactly 0.
-        nrm = hits.normal @ rot  # (n, 3) normals in the sensor frame
-        n0, n1, n2 = nrm[:, 0], nrm[:, 1], nrm[:, 2]
-        dx, dy, dz = dirs_s[:, 0], dirs_s[:, 1], dirs_s[:, 2]
-        n_dot_d = n0 * dx + n1 * dy + n2 * dz
-        r = hits.t
-        refl = np.abs(world.obj_reflection)[hits.obj]
-        r2 = r * r
-        energy = (p.k * p.k * p.source_intensity / s.elevation_rays) * refl * (n_dot_d * n_dot_d) / (r2 * r2)
-        if s.absorption:
-            energy *= 10.0 ** (-0.2 * p.absorption_db_per_m * np.where(hit, r, 0.0))
+        # Per ray, in the sensor frame, as 1-D float32 columns (Embree's ranges are float32
+        # already; range bins are found from the float64 range): the normal of the triangle
+        # hit (a miss, index -1, takes the tables' last row: zero normal, zero reflection, so
+        # its echo is exactly 0; its range is inf).
+        nrm = (rot.T @ tables.normal.T).astype(np.float32)  # (3, m + 1) sensor-frame normals
+        n0, n1, n2 = np.take(nrm[0], tri), np.take(nrm[1], tri), np.take(nrm[2], tri)
+        dx, dy, dz = fan.d
+        n_dot_d = n0 * dx
+        n_dot_d += n1 * dy
+        n_dot_d += n2 * dz
+        r32 = r.astype(np.float32)
+        r4 = r32 * r32
+        r4 *= r4
+        energy = n_dot_d * n_dot_d
+        energy *= np.take(tables.refl, tri)
+        energy *= np.float32(p.k * p.k * p.source_intensity / s.elevation_rays)
+        energy /= r4
+        if s.absorption and p.absorption_db_per_m > 0.0:
+            # 10^(-0.2 alpha R); a miss (R = inf) gets 0, its echo is 0 already
+            energy *= np.exp(r32 * np.float32(-0.2 * np.log(10.0) * p.absorption_db_per_m))
         dr = s.range_resolution
-        u = np.clip((r - s.range_min) * (1.0 / dr), 0.0, ns * (1.0 - 1e-12))
+        u = r - s.range_min
+        u *= 1.0 / dr
+        np.clip(u, 0.0, ns * (1.0 - 1e-12), out=u)
         if s.spread:
-            n_dot_dd = n0 * ddphi_s[:, 0] + n1 * ddphi_s[:, 1] + n2 * ddphi_s[:, 2]
+            ex, ey, ez = fan.e
+            width = n0 * ex
+            width += n1 * ey
+            width += n2 * ez
             with np.errstate(divide="ignore", invalid="ignore"):
-                width = r * n_dot_dd
-                width /= n_dot_d
+                width *= r32
+                # misses get no width (0, not the 0 x inf / 0 of their columns)
+                width = np.divide(width, n_dot_d, out=np.zeros_like(width), where=hit)
             np.abs(width, out=width)
-            width *= dphi / dr
-            # grazing incidence (n . d -> 0, inf or nan) is capped; misses get no width
-            np.fmin(width, s.spread_max_bins, out=width)
-            width[~hit] = 0.0
-            intensity = spread_deposit(u, width, energy, beam_all, ns, nb)
+            width *= np.float32(fan.dphi / dr)
+            # grazing incidence (n . d -> 0, inf or nan) is capped
+            np.fmin(width, np.float32(s.spread_max_bins), out=width)
+            intensity = spread_deposit(u, width, energy, fan.beam, ns, nb)
         else:
-            cell = u.astype(np.int64) * nb + beam_all
+            cell = u.astype(np.int64)
+            cell *= nb
+            cell += fan.beam
             intensity = _weighted_count(cell, energy, ns * nb).reshape(ns, nb)
 
         if s.beam_pattern:
             intensity = intensity @ beam_pattern_matrix(tuple(p.azimuths.tolist()), p.beam_width_azimuth)
         if s.speckle or s.noise:
             g = rng if rng is not None else np.random.default_rng([self.seed, frame_index])
-            if s.speckle:
+            if s.speckle and s.noise:
+                # the same numbers, in the same order, as two exponential() calls
+                draws = g.standard_exponential((2, *intensity.shape))
+                intensity *= draws[0]
+                draws[1] *= p.k * p.k * p.source_intensity * 10.0 ** (s.noise_level_db / 10.0)
+                intensity += draws[1]
+            elif s.speckle:
                 # fully developed speckle: Rayleigh amplitude, so intensity x Exp(1)
-                intensity = intensity * g.exponential(1.0, intensity.shape)
-            if s.noise:
+                intensity *= g.standard_exponential(intensity.shape)
+            else:
                 # receiver noise: complex Gaussian, so its intensity is Exp(mean)
                 mean = p.k * p.k * p.source_intensity * 10.0 ** (s.noise_level_db / 10.0)
-                intensity = intensity + g.exponential(mean, intensity.shape)
+                intensity += g.exponential(mean, intensity.shape)
 
         ranges = s.ranges
         if s.gain_mode == "paper":
@@ -353,7 +463,7 @@ class ImagingSonar:
         return SonarFrame(
             intensity=intensity, image=image, ranges=ranges, azimuths=p.azimuths,
             range_min=s.range_min, range_max=s.range_max, pose=pose,
-            hit_counts=world.hit_counts(hits), n_rays=n, n_hits=n_hits, settings=s,
+            hit_counts=_hit_counts(world, tables, tri), n_rays=n, n_hits=n_hits, settings=s,
             time=time, frame_index=frame_index, gain_db_at_range=gain,
         )
 
