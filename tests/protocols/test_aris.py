@@ -103,9 +103,13 @@ def test_frame_header_offsets():
 
 def test_availability_writes_zero_fields():
     b = ar.encode_availability(ar.Availability(serial_number=0, system_type=0, software_version=(0, 0, 0),
-                                               connection_state=0, system_variants=0))
-    # field 1 varint 0, field 2 varint 0, field 3 {1: 0, 2: 0, 3: 0}, field 4 varint 0, field 13 varint 0
-    assert b == bytes([0x08, 0, 0x10, 0, 0x1A, 6, 0x08, 0, 0x10, 0, 0x18, 0, 0x20, 0, 0x68, 0])
+                                               connection_state=0, system_variants=()))
+    # field 1 varint 0, field 2 varint 0, field 3 {1: 0, 2: 0, 3: 0}, field 4 varint 0, field 13: the vendor's
+    # SystemVariants message (wire type 2, tag 6a), empty (issue #20: it was a varint, 68 00)
+    assert b == bytes([0x08, 0, 0x10, 0, 0x1A, 6, 0x08, 0, 0x10, 0, 0x18, 0, 0x20, 0, 0x6A, 0])
+    defender = ar.encode_availability(ar.Availability(7, system_variants=("DF",)))
+    assert defender.endswith(bytes([0x6A, 4, 0x0A, 2]) + b"DF")  # SystemVariants { enabled: "DF" }
+    assert ar.decode_availability(defender) == ar.Availability(7, system_variants=("DF",))
     a = ar.decode_availability(ar.encode_availability(ar.Availability(1234, connection_state=1)))
     assert a == ar.Availability(1234, connection_state=1)
     assert isinstance(ar.decode_availability(b"\xff\xff"), ar.BadCommand)

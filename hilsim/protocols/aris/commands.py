@@ -12,6 +12,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Union
 
+from google.protobuf import unknown_fields
 from google.protobuf.message import DecodeError, Message
 
 from hilsim.protocols import codec
@@ -155,9 +156,12 @@ def encode_command(cmd: Command) -> bytes:
     return frame_command(command_message(cmd).SerializeToString())
 
 
-def _has_unknown(m: Message) -> bool:
-    from google.protobuf import unknown_fields
+def _unknown_numbers(m: Message) -> set[int]:
+    """Field numbers in ``m``'s unknown fields (proto2: an enum value the enum lacks lands there)."""
+    return {f.field_number for f in unknown_fields.UnknownFieldSet(m)}
 
+
+def _has_unknown(m: Message) -> bool:
     if len(unknown_fields.UnknownFieldSet(m)):
         return True
     for fd, v in m.ListFields():
@@ -169,18 +173,22 @@ def _has_unknown(m: Message) -> bool:
 def parse_command(payload: bytes, strict: bool = False) -> CommandEvent:
     """One serialized Command -> a command event, Unsupported or BadCommand (never raises).
 
-    strict: also reject unknown fields and unknown types (used while resynchronising).
+    Read as the sonar reads proto2 and proto3 clients alike: a scalar or enum field that is
+    absent has its default (proto3 clients omit defaults: a SetDateTime arrives without
+    ``type``, SET_DATETIME being 0); a message field keeps its presence (proto3 too), so a
+    command type without its message is a BadCommand. strict: also reject unknown fields
+    and unknown types (used while resynchronising).
     """
     m = pb_cmd.Command()
     try:
         m.ParseFromString(payload)
     except (DecodeError, RuntimeWarning, ValueError) as exc:
         return BadCommand(f"not a Command: {exc}", len(payload))
-    if not m.HasField("type"):
-        return BadCommand("Command without a (known) type", len(payload))
+    if not m.HasField("type") and _unknown_numbers(m) & {1}:
+        return BadCommand("Command with an unknown type", len(payload))
     if strict and _has_unknown(m):
         return BadCommand("unknown fields", len(payload))
-    t = int(m.type)
+    t = int(m.type)  # proto3 semantics: absent is the default, SET_DATETIME (0), as proto3 clients send it
     if t == SET_DATETIME and m.HasField("dateTime"):
         text: object = m.dateTime.dateTime
         if not isinstance(text, str):  # proto2 strings are not checked: invalid UTF-8 comes back as bytes

@@ -22,21 +22,26 @@ from hilsim.protocols.aris_pb import aris_frame_stream_pb2 as pb_frame
 
 @dataclass(frozen=True)
 class Availability:
+    """The beacon's fields. system_variants: the vendor's ``SystemVariants.enabled`` strings
+    ("DF" Defender, "VG" Voyager; none for a plain ARIS)."""
+
     serial_number: int
     system_type: int = SYSTEM_1800
     software_version: tuple[int, int, int] = (2, 8, 0)
     connection_state: int = 0  # 0 AVAILABLE, 1 BUSY
-    system_variants: int = 0
+    system_variants: tuple[str, ...] = ()
 
 
 def encode_availability(a: Availability) -> bytes:
-    """The beacon datagram; every field is set, so zeros are written too."""
+    """The beacon datagram; every field is set, so zeros are written too, and systemVariants
+    (field 13) is its message, empty for a plain ARIS (``6a 00``)."""
     m = pb_avail.Availability()
     m.serialNumber = a.serial_number
     m.systemType = a.system_type  # type: ignore[assignment]
     m.softwareVersion.major, m.softwareVersion.minor, m.softwareVersion.buildnumber = a.software_version
     m.connectionState = a.connection_state  # type: ignore[assignment]
-    m.systemVariants = a.system_variants
+    m.systemVariants.SetInParent()
+    m.systemVariants.enabled.extend(a.system_variants)
     return m.SerializeToString()
 
 
@@ -50,7 +55,7 @@ def decode_availability(data: bytes) -> Availability | BadCommand:
         return BadCommand("Availability without serialNumber", len(data))
     v = m.softwareVersion
     return Availability(m.serialNumber, int(m.systemType), (v.major, v.minor, v.buildnumber),
-                        int(m.connectionState), m.systemVariants)
+                        int(m.connectionState), tuple(m.systemVariants.enabled))
 
 
 # ------------------------------------------------------------- frame stream

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x61ris_availability.proto\x12\x0bhilsim.aris\"\xaa\x05\n\x0c\x41vailability\x12\x14\n\x0cserialNumber\x18\x01 \x01(\r\x12\x38\n\nsystemType\x18\x02 \x01(\x0e\x32$.hilsim.aris.Availability.SystemType\x12\x42\n\x0fsoftwareVersion\x18\x03 \x01(\x0b\x32).hilsim.aris.Availability.SoftwareVersion\x12\x42\n\x0f\x63onnectionState\x18\x04 \x01(\x0e\x32).hilsim.aris.Availability.ConnectionState\x12<\n\x0c\x63\x61pabilities\x18\x05 \x01(\x0b\x32&.hilsim.aris.Availability.Capabilities\x12\x11\n\treserved6\x18\x06 \x01(\r\x12H\n\x12\x63ommLinkPreference\x18\x07 \x01(\x0e\x32,.hilsim.aris.Availability.CommLinkPreference\x12\x0f\n\x07\x63puTemp\x18\x08 \x01(\x02\x12\x16\n\x0esystemVariants\x18\r \x01(\r\x1a\x44\n\x0fSoftwareVersion\x12\r\n\x05major\x18\x01 \x01(\r\x12\r\n\x05minor\x18\x02 \x01(\r\x12\x13\n\x0b\x62uildnumber\x18\x03 \x01(\r\x1a\x1f\n\x0c\x43\x61pabilities\x12\x0f\n\x07\x65nabled\x18\x01 \x03(\t\"9\n\nSystemType\x12\r\n\tARIS_1800\x10\x00\x12\r\n\tARIS_3000\x10\x01\x12\r\n\tARIS_1200\x10\x02\"*\n\x0f\x43onnectionState\x12\r\n\tAVAILABLE\x10\x00\x12\x08\n\x04\x42USY\x10\x01\"0\n\x12\x43ommLinkPreference\x12\x0c\n\x08HomePlug\x10\x00\x12\x0c\n\x08\x45thernet\x10\x01')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x61ris_availability.proto\x12\x0bhilsim.aris\"\xae\x07\n\x0c\x41vailability\x12\x14\n\x0cserialNumber\x18\x01 \x01(\r\x12\x38\n\nsystemType\x18\x02 \x01(\x0e\x32$.hilsim.aris.Availability.SystemType\x12\x42\n\x0fsoftwareVersion\x18\x03 \x01(\x0b\x32).hilsim.aris.Availability.SoftwareVersion\x12\x42\n\x0f\x63onnectionState\x18\x04 \x01(\x0e\x32).hilsim.aris.Availability.ConnectionState\x12<\n\x0c\x63\x61pabilities\x18\x05 \x01(\x0b\x32&.hilsim.aris.Availability.Capabilities\x12\x11\n\treserved6\x18\x06 \x01(\r\x12H\n\x12\x63ommLinkPreference\x18\x07 \x01(\x0e\x32,.hilsim.aris.Availability.CommLinkPreference\x12\x0f\n\x07\x63puTemp\x18\x08 \x01(\x02\x12\x42\n\x0fpowerDownReason\x18\t \x01(\x0e\x32).hilsim.aris.Availability.PowerDownReason\x12\x1d\n\x15overTempLimitDegreesC\x18\n \x01(\x02\x12\x1c\n\x14overTempLimitSeconds\x18\x0b \x01(\r\x12\x13\n\x0bisDiverHeld\x18\x0c \x01(\x08\x12@\n\x0esystemVariants\x18\r \x01(\x0b\x32(.hilsim.aris.Availability.SystemVariants\x1a\x44\n\x0fSoftwareVersion\x12\r\n\x05major\x18\x01 \x01(\r\x12\r\n\x05minor\x18\x02 \x01(\r\x12\x13\n\x0b\x62uildnumber\x18\x03 \x01(\r\x1a\x1f\n\x0c\x43\x61pabilities\x12\x0f\n\x07\x65nabled\x18\x01 \x03(\t\x1a!\n\x0eSystemVariants\x12\x0f\n\x07\x65nabled\x18\x01 \x03(\t\"9\n\nSystemType\x12\r\n\tARIS_1800\x10\x00\x12\r\n\tARIS_3000\x10\x01\x12\r\n\tARIS_1200\x10\x02\"*\n\x0f\x43onnectionState\x12\r\n\tAVAILABLE\x10\x00\x12\x08\n\x04\x42USY\x10\x01\"0\n\x12\x43ommLinkPreference\x12\x0c\n\x08HomePlug\x10\x00\x12\x0c\n\x08\x45thernet\x10\x01\"\x1f\n\x0fPowerDownReason\x12\x0c\n\x08OverTemp\x10\x00')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,15 +32,19 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'aris_availability_pb2', _gl
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_AVAILABILITY']._serialized_start=41
-  _globals['_AVAILABILITY']._serialized_end=723
-  _globals['_AVAILABILITY_SOFTWAREVERSION']._serialized_start=469
-  _globals['_AVAILABILITY_SOFTWAREVERSION']._serialized_end=537
-  _globals['_AVAILABILITY_CAPABILITIES']._serialized_start=539
-  _globals['_AVAILABILITY_CAPABILITIES']._serialized_end=570
-  _globals['_AVAILABILITY_SYSTEMTYPE']._serialized_start=572
-  _globals['_AVAILABILITY_SYSTEMTYPE']._serialized_end=629
-  _globals['_AVAILABILITY_CONNECTIONSTATE']._serialized_start=631
-  _globals['_AVAILABILITY_CONNECTIONSTATE']._serialized_end=673
-  _globals['_AVAILABILITY_COMMLINKPREFERENCE']._serialized_start=675
-  _globals['_AVAILABILITY_COMMLINKPREFERENCE']._serialized_end=723
+  _globals['_AVAILABILITY']._serialized_end=983
+  _globals['_AVAILABILITY_SOFTWAREVERSION']._serialized_start=661
+  _globals['_AVAILABILITY_SOFTWAREVERSION']._serialized_end=729
+  _globals['_AVAILABILITY_CAPABILITIES']._serialized_start=731
+  _globals['_AVAILABILITY_CAPABILITIES']._serialized_end=762
+  _globals['_AVAILABILITY_SYSTEMVARIANTS']._serialized_start=764
+  _globals['_AVAILABILITY_SYSTEMVARIANTS']._serialized_end=797
+  _globals['_AVAILABILITY_SYSTEMTYPE']._serialized_start=799
+  _globals['_AVAILABILITY_SYSTEMTYPE']._serialized_end=856
+  _globals['_AVAILABILITY_CONNECTIONSTATE']._serialized_start=858
+  _globals['_AVAILABILITY_CONNECTIONSTATE']._serialized_end=900
+  _globals['_AVAILABILITY_COMMLINKPREFERENCE']._serialized_start=902
+  _globals['_AVAILABILITY_COMMLINKPREFERENCE']._serialized_end=950
+  _globals['_AVAILABILITY_POWERDOWNREASON']._serialized_start=952
+  _globals['_AVAILABILITY_POWERDOWNREASON']._serialized_end=983
 # @@protoc_insertion_point(module_scope)

@@ -8,7 +8,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Availability(_message.Message):
-    __slots__ = ("serialNumber", "systemType", "softwareVersion", "connectionState", "capabilities", "reserved6", "commLinkPreference", "cpuTemp", "systemVariants")
+    __slots__ = ("serialNumber", "systemType", "softwareVersion", "connectionState", "capabilities", "reserved6", "commLinkPreference", "cpuTemp", "powerDownReason", "overTempLimitDegreesC", "overTempLimitSeconds", "isDiverHeld", "systemVariants")
     class SystemType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         ARIS_1800: _ClassVar[Availability.SystemType]
@@ -29,6 +29,10 @@ class Availability(_message.Message):
         Ethernet: _ClassVar[Availability.CommLinkPreference]
     HomePlug: Availability.CommLinkPreference
     Ethernet: Availability.CommLinkPreference
+    class PowerDownReason(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+        __slots__ = ()
+        OverTemp: _ClassVar[Availability.PowerDownReason]
+    OverTemp: Availability.PowerDownReason
     class SoftwareVersion(_message.Message):
         __slots__ = ("major", "minor", "buildnumber")
         MAJOR_FIELD_NUMBER: _ClassVar[int]
@@ -43,6 +47,11 @@ class Availability(_message.Message):
         ENABLED_FIELD_NUMBER: _ClassVar[int]
         enabled: _containers.RepeatedScalarFieldContainer[str]
         def __init__(self, enabled: _Optional[_Iterable[str]] = ...) -> None: ...
+    class SystemVariants(_message.Message):
+        __slots__ = ("enabled",)
+        ENABLED_FIELD_NUMBER: _ClassVar[int]
+        enabled: _containers.RepeatedScalarFieldContainer[str]
+        def __init__(self, enabled: _Optional[_Iterable[str]] = ...) -> None: ...
     SERIALNUMBER_FIELD_NUMBER: _ClassVar[int]
     SYSTEMTYPE_FIELD_NUMBER: _ClassVar[int]
     SOFTWAREVERSION_FIELD_NUMBER: _ClassVar[int]
@@ -51,6 +60,10 @@ class Availability(_message.Message):
     RESERVED6_FIELD_NUMBER: _ClassVar[int]
     COMMLINKPREFERENCE_FIELD_NUMBER: _ClassVar[int]
     CPUTEMP_FIELD_NUMBER: _ClassVar[int]
+    POWERDOWNREASON_FIELD_NUMBER: _ClassVar[int]
+    OVERTEMPLIMITDEGREESC_FIELD_NUMBER: _ClassVar[int]
+    OVERTEMPLIMITSECONDS_FIELD_NUMBER: _ClassVar[int]
+    ISDIVERHELD_FIELD_NUMBER: _ClassVar[int]
     SYSTEMVARIANTS_FIELD_NUMBER: _ClassVar[int]
     serialNumber: int
     systemType: Availability.SystemType
@@ -60,5 +73,9 @@ class Availability(_message.Message):
     reserved6: int
     commLinkPreference: Availability.CommLinkPreference
     cpuTemp: float
-    systemVariants: int
-    def __init__(self, serialNumber: _Optional[int] = ..., systemType: _Optional[_Union[Availability.SystemType, str]] = ..., softwareVersion: _Optional[_Union[Availability.SoftwareVersion, _Mapping]] = ..., connectionState: _Optional[_Union[Availability.ConnectionState, str]] = ..., capabilities: _Optional[_Union[Availability.Capabilities, _Mapping]] = ..., reserved6: _Optional[int] = ..., commLinkPreference: _Optional[_Union[Availability.CommLinkPreference, str]] = ..., cpuTemp: _Optional[float] = ..., systemVariants: _Optional[int] = ...) -> None: ...
+    powerDownReason: Availability.PowerDownReason
+    overTempLimitDegreesC: float
+    overTempLimitSeconds: int
+    isDiverHeld: bool
+    systemVariants: Availability.SystemVariants
+    def __init__(self, serialNumber: _Optional[int] = ..., systemType: _Optional[_Union[Availability.SystemType, str]] = ..., softwareVersion: _Optional[_Union[Availability.SoftwareVersion, _Mapping]] = ..., connectionState: _Optional[_Union[Availability.ConnectionState, str]] = ..., capabilities: _Optional[_Union[Availability.Capabilities, _Mapping]] = ..., reserved6: _Optional[int] = ..., commLinkPreference: _Optional[_Union[Availability.CommLinkPreference, str]] = ..., cpuTemp: _Optional[float] = ..., powerDownReason: _Optional[_Union[Availability.PowerDownReason, str]] = ..., overTempLimitDegreesC: _Optional[float] = ..., overTempLimitSeconds: _Optional[int] = ..., isDiverHeld: _Optional[bool] = ..., systemVariants: _Optional[_Union[Availability.SystemVariants, _Mapping]] = ...) -> None: ...

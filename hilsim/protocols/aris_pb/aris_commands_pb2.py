@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13\x61ris_commands.proto\x12\x0bhilsim.aris\"\x84\x0b\n\x07\x43ommand\x12.\n\x04type\x18\x01 \x01(\x0e\x32 .hilsim.aris.Command.CommandType\x12\x32\n\x08\x64\x61teTime\x18\x02 \x01(\x0b\x32 .hilsim.aris.Command.SetDateTime\x12H\n\x13\x66rameStreamReceiver\x18\x03 \x01(\x0b\x32+.hilsim.aris.Command.SetFrameStreamReceiver\x12:\n\x08settings\x18\x05 \x01(\x0b\x32(.hilsim.aris.Command.SetAcousticSettings\x12\x32\n\x08salinity\x18\x06 \x01(\x0b\x32 .hilsim.aris.Command.SetSalinity\x12<\n\rfocusPosition\x18\x08 \x01(\x0b\x32%.hilsim.aris.Command.SetFocusPosition\x12\'\n\x04ping\x18\x10 \x01(\x0b\x32\x19.hilsim.aris.Command.Ping\x1a\x1f\n\x0bSetDateTime\x12\x10\n\x08\x64\x61teTime\x18\x01 \x01(\t\x1a\x32\n\x16SetFrameStreamReceiver\x12\x0c\n\x04port\x18\x01 \x01(\r\x12\n\n\x02ip\x18\x02 \x01(\t\x1a\xe8\x02\n\x13SetAcousticSettings\x12\x0e\n\x06\x63ookie\x18\x01 \x01(\r\x12\x11\n\tframeRate\x18\x02 \x01(\x02\x12\x16\n\x0esamplesPerBeam\x18\x03 \x01(\r\x12\x18\n\x10sampleStartDelay\x18\x04 \x01(\r\x12\x13\n\x0b\x63yclePeriod\x18\x05 \x01(\r\x12\x14\n\x0csamplePeriod\x18\x06 \x01(\r\x12\x12\n\npulseWidth\x18\x07 \x01(\r\x12\x10\n\x08pingMode\x18\x08 \x01(\r\x12\x16\n\x0e\x65nableTransmit\x18\t \x01(\x08\x12\x45\n\tfrequency\x18\n \x01(\x0e\x32\x32.hilsim.aris.Command.SetAcousticSettings.Frequency\x12\x16\n\x0e\x65nable150Volts\x18\x0b \x01(\x08\x12\x14\n\x0creceiverGain\x18\x0c \x01(\x02\"\x1e\n\tFrequency\x12\x07\n\x03LOW\x10\x00\x12\x08\n\x04HIGH\x10\x01\x1a~\n\x0bSetSalinity\x12;\n\x08salinity\x18\x01 \x01(\x0e\x32).hilsim.aris.Command.SetSalinity.Salinity\"2\n\x08Salinity\x12\t\n\x05\x46RESH\x10\x00\x12\x0c\n\x08\x42RACKISH\x10\x0f\x12\r\n\tSALTWATER\x10#\x1a\x38\n\x10SetFocusPosition\x12\x10\n\x08position\x18\x01 \x01(\r\x12\x12\n\nfocusRange\x18\x02 \x01(\x02\x1a\x06\n\x04Ping\"\xf1\x02\n\x0b\x43ommandType\x12\x10\n\x0cSET_DATETIME\x10\x00\x12\x1c\n\x18SET_FRAMESTREAM_RECEIVER\x10\x01\x12\x1c\n\x18SET_FRAMESTREAM_SETTINGS\x10\x02\x12\x11\n\rSET_ACOUSTICS\x10\x03\x12\x10\n\x0cSET_SALINITY\x10\x04\x12\x11\n\rSET_TELEPHOTO\x10\x05\x12\r\n\tSET_FOCUS\x10\x06\x12\x0f\n\x0b\x46ORCE_FOCUS\x10\x07\x12\x0e\n\nHOME_FOCUS\x10\x08\x12\x15\n\x11SET_ROTATOR_MOUNT\x10\t\x12\x18\n\x14SET_ROTATOR_VELOCITY\x10\n\x12\x1c\n\x18SET_ROTATOR_ACCELERATION\x10\x0b\x12\x18\n\x14SET_ROTATOR_POSITION\x10\x0c\x12\x10\n\x0cSTOP_ROTATOR\x10\r\x12\x08\n\x04PING\x10\x0e\x12\x17\n\x13SET_SYSLOG_RECEIVER\x10\x0f\x12\x0e\n\nPOWER_DOWN\x10\x10')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13\x61ris_commands.proto\x12\x0bhilsim.aris\"\xe1\x18\n\x07\x43ommand\x12.\n\x04type\x18\x01 \x01(\x0e\x32 .hilsim.aris.Command.CommandType\x12\x32\n\x08\x64\x61teTime\x18\x02 \x01(\x0b\x32 .hilsim.aris.Command.SetDateTime\x12H\n\x13\x66rameStreamReceiver\x18\x03 \x01(\x0b\x32+.hilsim.aris.Command.SetFrameStreamReceiver\x12H\n\x13\x66rameStreamSettings\x18\x04 \x01(\x0b\x32+.hilsim.aris.Command.SetFrameStreamSettings\x12:\n\x08settings\x18\x05 \x01(\x0b\x32(.hilsim.aris.Command.SetAcousticSettings\x12\x32\n\x08salinity\x18\x06 \x01(\x0b\x32 .hilsim.aris.Command.SetSalinity\x12\x38\n\ttelephoto\x18\x07 \x01(\x0b\x32%.hilsim.aris.Command.SetTelephotoLens\x12<\n\rfocusPosition\x18\x08 \x01(\x0b\x32%.hilsim.aris.Command.SetFocusPosition\x12\x33\n\nfocusForce\x18\t \x01(\x0b\x32\x1f.hilsim.aris.Command.ForceFocus\x12\x31\n\tfocusHome\x18\n \x01(\x0b\x32\x1e.hilsim.aris.Command.HomeFocus\x12\x33\n\x05mount\x18\x0b \x01(\x0b\x32$.hilsim.aris.Command.SetRotatorMount\x12@\n\x0frotatorVelocity\x18\x0c \x01(\x0b\x32\'.hilsim.aris.Command.SetRotatorVelocity\x12H\n\x13rotatorAcceleration\x18\r \x01(\x0b\x32+.hilsim.aris.Command.SetRotatorAcceleration\x12@\n\x0frotatorPosition\x18\x0e \x01(\x0b\x32\'.hilsim.aris.Command.SetRotatorPosition\x12\x35\n\x0brotatorStop\x18\x0f \x01(\x0b\x32 .hilsim.aris.Command.StopRotator\x12\'\n\x04ping\x18\x10 \x01(\x0b\x32\x19.hilsim.aris.Command.Ping\x12>\n\x0esyslogReceiver\x18\x11 \x01(\x0b\x32&.hilsim.aris.Command.SetSyslogReceiver\x12\x31\n\tpowerDown\x18\x12 \x01(\x0b\x32\x1e.hilsim.aris.Command.PowerDown\x12\x31\n\treserved1\x18\x13 \x01(\x0b\x32\x1e.hilsim.aris.Command.Reserved1\x1a\x1f\n\x0bSetDateTime\x12\x10\n\x08\x64\x61teTime\x18\x01 \x01(\t\x1a\x32\n\x16SetFrameStreamReceiver\x12\x0c\n\x04port\x18\x01 \x01(\r\x12\n\n\x02ip\x18\x02 \x01(\t\x1a\x84\x02\n\x16SetFrameStreamSettings\x12\x42\n\x10interpacketDelay\x18\x01 \x01(\x0b\x32(.hilsim.aris.Command.SetInterpacketDelay\x12^\n\x14packetLossMitigation\x18\x02 \x01(\x0e\x32@.hilsim.aris.Command.SetFrameStreamSettings.PacketLossMitigation\"F\n\x14PacketLossMitigation\x12\x17\n\x13\x44ROP_PARTIAL_FRAMES\x10\x00\x12\x15\n\x11PESSIMISTIC_RETRY\x10\x01\x1a:\n\x13SetInterpacketDelay\x12\x0e\n\x06\x65nable\x18\x01 \x01(\x08\x12\x13\n\x0b\x64\x65layPeriod\x18\x02 \x01(\r\x1a\xe8\x02\n\x13SetAcousticSettings\x12\x0e\n\x06\x63ookie\x18\x01 \x01(\r\x12\x11\n\tframeRate\x18\x02 \x01(\x02\x12\x16\n\x0esamplesPerBeam\x18\x03 \x01(\r\x12\x18\n\x10sampleStartDelay\x18\x04 \x01(\r\x12\x13\n\x0b\x63yclePeriod\x18\x05 \x01(\r\x12\x14\n\x0csamplePeriod\x18\x06 \x01(\r\x12\x12\n\npulseWidth\x18\x07 \x01(\r\x12\x10\n\x08pingMode\x18\x08 \x01(\r\x12\x16\n\x0e\x65nableTransmit\x18\t \x01(\x08\x12\x45\n\tfrequency\x18\n \x01(\x0e\x32\x32.hilsim.aris.Command.SetAcousticSettings.Frequency\x12\x16\n\x0e\x65nable150Volts\x18\x0b \x01(\x08\x12\x14\n\x0creceiverGain\x18\x0c \x01(\x02\"\x1e\n\tFrequency\x12\x07\n\x03LOW\x10\x00\x12\x08\n\x04HIGH\x10\x01\x1a~\n\x0bSetSalinity\x12;\n\x08salinity\x18\x01 \x01(\x0e\x32).hilsim.aris.Command.SetSalinity.Salinity\"2\n\x08Salinity\x12\t\n\x05\x46RESH\x10\x00\x12\x0c\n\x08\x42RACKISH\x10\x0f\x12\r\n\tSALTWATER\x10#\x1a%\n\x10SetTelephotoLens\x12\x11\n\ttelephoto\x18\x01 \x01(\x08\x1a\x38\n\x10SetFocusPosition\x12\x10\n\x08position\x18\x01 \x01(\r\x12\x12\n\nfocusRange\x18\x02 \x01(\x02\x1a\x7f\n\nForceFocus\x12<\n\tdirection\x18\x01 \x01(\x0e\x32).hilsim.aris.Command.ForceFocus.Direction\"3\n\tDirection\x12\x0c\n\x08INVALID0\x10\x00\x12\x0b\n\x07\x46ORWARD\x10\x01\x12\x0b\n\x07REVERSE\x10\x02\x1a\x0b\n\tHomeFocus\x1at\n\x0fSetRotatorMount\x12\x39\n\x05mount\x18\x01 \x01(\x0e\x32*.hilsim.aris.Command.SetRotatorMount.Mount\"&\n\x05Mount\x12\x08\n\x04POLE\x10\x00\x12\n\n\x06TRIPOD\x10\x01\x12\x07\n\x03ROV\x10\x02\x1aO\n\x12SetRotatorVelocity\x12\'\n\x04\x61xis\x18\x01 \x01(\x0e\x32\x19.hilsim.aris.Command.Axis\x12\x10\n\x08velocity\x18\x02 \x01(\x02\x1aW\n\x16SetRotatorAcceleration\x12\'\n\x04\x61xis\x18\x01 \x01(\x0e\x32\x19.hilsim.aris.Command.Axis\x12\x14\n\x0c\x61\x63\x63\x65leration\x18\x02 \x01(\x02\x1aO\n\x12SetRotatorPosition\x12\'\n\x04\x61xis\x18\x01 \x01(\x0e\x32\x19.hilsim.aris.Command.Axis\x12\x10\n\x08position\x18\x02 \x01(\x02\x1a\x36\n\x0bStopRotator\x12\'\n\x04\x61xis\x18\x01 \x01(\x0e\x32\x19.hilsim.aris.Command.Axis\x1a\x06\n\x04Ping\x1a\x1f\n\x11SetSyslogReceiver\x12\n\n\x02ip\x18\x01 \x01(\t\x1a\x0b\n\tPowerDown\x1a\x0b\n\tReserved1\"\x81\x03\n\x0b\x43ommandType\x12\x10\n\x0cSET_DATETIME\x10\x00\x12\x1c\n\x18SET_FRAMESTREAM_RECEIVER\x10\x01\x12\x1c\n\x18SET_FRAMESTREAM_SETTINGS\x10\x02\x12\x11\n\rSET_ACOUSTICS\x10\x03\x12\x10\n\x0cSET_SALINITY\x10\x04\x12\x11\n\rSET_TELEPHOTO\x10\x05\x12\r\n\tSET_FOCUS\x10\x06\x12\x0f\n\x0b\x46ORCE_FOCUS\x10\x07\x12\x0e\n\nHOME_FOCUS\x10\x08\x12\x15\n\x11SET_ROTATOR_MOUNT\x10\t\x12\x18\n\x14SET_ROTATOR_VELOCITY\x10\n\x12\x1c\n\x18SET_ROTATOR_ACCELERATION\x10\x0b\x12\x18\n\x14SET_ROTATOR_POSITION\x10\x0c\x12\x10\n\x0cSTOP_ROTATOR\x10\r\x12\x08\n\x04PING\x10\x0e\x12\x17\n\x13SET_SYSLOG_RECEIVER\x10\x0f\x12\x0e\n\nPOWER_DOWN\x10\x10\x12\x0e\n\nRESERVED_1\x10\x11\"#\n\x04\x41xis\x12\x07\n\x03PAN\x10\x00\x12\x08\n\x04ROLL\x10\x01\x12\x08\n\x04TILT\x10\x02')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,23 +32,57 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'aris_commands_pb2', _global
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_COMMAND']._serialized_start=37
-  _globals['_COMMAND']._serialized_end=1449
-  _globals['_COMMAND_SETDATETIME']._serialized_start=437
-  _globals['_COMMAND_SETDATETIME']._serialized_end=468
-  _globals['_COMMAND_SETFRAMESTREAMRECEIVER']._serialized_start=470
-  _globals['_COMMAND_SETFRAMESTREAMRECEIVER']._serialized_end=520
-  _globals['_COMMAND_SETACOUSTICSETTINGS']._serialized_start=523
-  _globals['_COMMAND_SETACOUSTICSETTINGS']._serialized_end=883
-  _globals['_COMMAND_SETACOUSTICSETTINGS_FREQUENCY']._serialized_start=853
-  _globals['_COMMAND_SETACOUSTICSETTINGS_FREQUENCY']._serialized_end=883
-  _globals['_COMMAND_SETSALINITY']._serialized_start=885
-  _globals['_COMMAND_SETSALINITY']._serialized_end=1011
-  _globals['_COMMAND_SETSALINITY_SALINITY']._serialized_start=961
-  _globals['_COMMAND_SETSALINITY_SALINITY']._serialized_end=1011
-  _globals['_COMMAND_SETFOCUSPOSITION']._serialized_start=1013
-  _globals['_COMMAND_SETFOCUSPOSITION']._serialized_end=1069
-  _globals['_COMMAND_PING']._serialized_start=1071
-  _globals['_COMMAND_PING']._serialized_end=1077
-  _globals['_COMMAND_COMMANDTYPE']._serialized_start=1080
-  _globals['_COMMAND_COMMANDTYPE']._serialized_end=1449
+  _globals['_COMMAND']._serialized_end=3206
+  _globals['_COMMAND_SETDATETIME']._serialized_start=1153
+  _globals['_COMMAND_SETDATETIME']._serialized_end=1184
+  _globals['_COMMAND_SETFRAMESTREAMRECEIVER']._serialized_start=1186
+  _globals['_COMMAND_SETFRAMESTREAMRECEIVER']._serialized_end=1236
+  _globals['_COMMAND_SETFRAMESTREAMSETTINGS']._serialized_start=1239
+  _globals['_COMMAND_SETFRAMESTREAMSETTINGS']._serialized_end=1499
+  _globals['_COMMAND_SETFRAMESTREAMSETTINGS_PACKETLOSSMITIGATION']._serialized_start=1429
+  _globals['_COMMAND_SETFRAMESTREAMSETTINGS_PACKETLOSSMITIGATION']._serialized_end=1499
+  _globals['_COMMAND_SETINTERPACKETDELAY']._serialized_start=1501
+  _globals['_COMMAND_SETINTERPACKETDELAY']._serialized_end=1559
+  _globals['_COMMAND_SETACOUSTICSETTINGS']._serialized_start=1562
+  _globals['_COMMAND_SETACOUSTICSETTINGS']._serialized_end=1922
+  _globals['_COMMAND_SETACOUSTICSETTINGS_FREQUENCY']._serialized_start=1892
+  _globals['_COMMAND_SETACOUSTICSETTINGS_FREQUENCY']._serialized_end=1922
+  _globals['_COMMAND_SETSALINITY']._serialized_start=1924
+  _globals['_COMMAND_SETSALINITY']._serialized_end=2050
+  _globals['_COMMAND_SETSALINITY_SALINITY']._serialized_start=2000
+  _globals['_COMMAND_SETSALINITY_SALINITY']._serialized_end=2050
+  _globals['_COMMAND_SETTELEPHOTOLENS']._serialized_start=2052
+  _globals['_COMMAND_SETTELEPHOTOLENS']._serialized_end=2089
+  _globals['_COMMAND_SETFOCUSPOSITION']._serialized_start=2091
+  _globals['_COMMAND_SETFOCUSPOSITION']._serialized_end=2147
+  _globals['_COMMAND_FORCEFOCUS']._serialized_start=2149
+  _globals['_COMMAND_FORCEFOCUS']._serialized_end=2276
+  _globals['_COMMAND_FORCEFOCUS_DIRECTION']._serialized_start=2225
+  _globals['_COMMAND_FORCEFOCUS_DIRECTION']._serialized_end=2276
+  _globals['_COMMAND_HOMEFOCUS']._serialized_start=2278
+  _globals['_COMMAND_HOMEFOCUS']._serialized_end=2289
+  _globals['_COMMAND_SETROTATORMOUNT']._serialized_start=2291
+  _globals['_COMMAND_SETROTATORMOUNT']._serialized_end=2407
+  _globals['_COMMAND_SETROTATORMOUNT_MOUNT']._serialized_start=2369
+  _globals['_COMMAND_SETROTATORMOUNT_MOUNT']._serialized_end=2407
+  _globals['_COMMAND_SETROTATORVELOCITY']._serialized_start=2409
+  _globals['_COMMAND_SETROTATORVELOCITY']._serialized_end=2488
+  _globals['_COMMAND_SETROTATORACCELERATION']._serialized_start=2490
+  _globals['_COMMAND_SETROTATORACCELERATION']._serialized_end=2577
+  _globals['_COMMAND_SETROTATORPOSITION']._serialized_start=2579
+  _globals['_COMMAND_SETROTATORPOSITION']._serialized_end=2658
+  _globals['_COMMAND_STOPROTATOR']._serialized_start=2660
+  _globals['_COMMAND_STOPROTATOR']._serialized_end=2714
+  _globals['_COMMAND_PING']._serialized_start=2716
+  _globals['_COMMAND_PING']._serialized_end=2722
+  _globals['_COMMAND_SETSYSLOGRECEIVER']._serialized_start=2724
+  _globals['_COMMAND_SETSYSLOGRECEIVER']._serialized_end=2755
+  _globals['_COMMAND_POWERDOWN']._serialized_start=2757
+  _globals['_COMMAND_POWERDOWN']._serialized_end=2768
+  _globals['_COMMAND_RESERVED1']._serialized_start=2770
+  _globals['_COMMAND_RESERVED1']._serialized_end=2781
+  _globals['_COMMAND_COMMANDTYPE']._serialized_start=2784
+  _globals['_COMMAND_COMMANDTYPE']._serialized_end=3169
+  _globals['_COMMAND_AXIS']._serialized_start=3171
+  _globals['_COMMAND_AXIS']._serialized_end=3206
 # @@protoc_insertion_point(module_scope)

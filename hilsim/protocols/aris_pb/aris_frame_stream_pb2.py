@@ -24,13 +24,15 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x61ris_frame_stream.proto\x12\x18hilsim.aris.frame_stream\"~\n\tFramePart\x12\x13\n\x0b\x66rame_index\x18\x01 \x01(\x05\x12\x17\n\x0ftotal_data_size\x18\x02 \x01(\x05\x12\x0e\n\x06header\x18\x03 \x01(\x0c\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\x12\x13\n\x0b\x64\x61ta_offset\x18\x05 \x01(\x05\x12\x10\n\x08\x61\x63k_port\x18\x06 \x01(\x05\"8\n\x0c\x46ramePartAck\x12\x13\n\x0b\x66rame_index\x18\x01 \x01(\x05\x12\x13\n\x0b\x64\x61ta_offset\x18\x02 \x01(\x05')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x61ris_frame_stream.proto\x12\x18hilsim.aris.frame_stream\"~\n\tFramePart\x12\x13\n\x0b\x66rame_index\x18\x01 \x01(\x05\x12\x17\n\x0ftotal_data_size\x18\x02 \x01(\x05\x12\x0e\n\x06header\x18\x03 \x01(\x0c\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\x12\x13\n\x0b\x64\x61ta_offset\x18\x05 \x01(\x05\x12\x10\n\x08\x61\x63k_port\x18\x06 \x01(\x05\"8\n\x0c\x46ramePartAck\x12\x13\n\x0b\x66rame_index\x18\x01 \x01(\x05\x12\x13\n\x0b\x64\x61ta_offset\x18\x02 \x01(\x05*6\n\nSonarModel\x12\x0c\n\x08\x41RIS1800\x10\x00\x12\x0c\n\x08\x41RIS3000\x10\x01\x12\x0c\n\x08\x41RIS1200\x10\x02')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'aris_frame_stream_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
+  _globals['_SONARMODEL']._serialized_start=239
+  _globals['_SONARMODEL']._serialized_end=293
   _globals['_FRAMEPART']._serialized_start=53
   _globals['_FRAMEPART']._serialized_end=179
   _globals['_FRAMEPARTACK']._serialized_start=181

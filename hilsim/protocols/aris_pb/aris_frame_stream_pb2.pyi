@@ -1,8 +1,18 @@
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from typing import ClassVar as _ClassVar, Optional as _Optional
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class SonarModel(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ARIS1800: _ClassVar[SonarModel]
+    ARIS3000: _ClassVar[SonarModel]
+    ARIS1200: _ClassVar[SonarModel]
+ARIS1800: SonarModel
+ARIS3000: SonarModel
+ARIS1200: SonarModel
 
 class FramePart(_message.Message):
     __slots__ = ("frame_index", "total_data_size", "header", "data", "data_offset", "ack_port")
