@@ -221,10 +221,11 @@ class SerialLineTcpServer:
     """The RTU line on ``host:port`` as a serial device server passes it on (an RS-485 to
     Ethernet converter in TCP-server raw mode): each client's bytes are a serial line of
     their own, Modbus RTU frames and the line's other dialect (the KELLER bus) alike, with
-    the same targets and dialect handlers as the pty line ``line``. A pause of ``gap`` [s]
-    in a client's bytes ends a frame, as silence on the wire does."""
+    the same targets and dialect handlers as the line's session ``line`` (a
+    :class:`ModbusRtuServer`'s ``session``, or one of its own). A pause of ``gap`` [s] in a
+    client's bytes ends a frame, as silence on the wire does."""
 
-    def __init__(self, name: str, line: ModbusRtuServer, host: str = "127.0.0.1", port: int = 0, *,
+    def __init__(self, name: str, line: RtuSession, host: str = "127.0.0.1", port: int = 0, *,
                  max_clients: int = 8, gap: float = 0.005, idle_timeout: float | None = None):
         self.name = name
         self.line = line
@@ -245,9 +246,10 @@ class SerialLineTcpServer:
         await self.link.close()
 
     def _on_connect(self, client: Client) -> None:
-        session = RtuSession(self.line.session.targets, self.stats)  # the same targets (a shared list)
-        session.foreign = self.line.session.foreign                  # ... and dialect handlers
-        session.decoder.dialect = self.line.session.decoder.dialect
+        session = RtuSession((), self.stats)
+        session.targets = self.line.targets          # the same targets (the line's list) ...
+        session.foreign = self.line.foreign          # ... and dialect handlers
+        session.decoder.dialect = self.line.decoder.dialect
         client.state["session"] = session
         client.state["timer"] = None
 
@@ -262,7 +264,7 @@ class SerialLineTcpServer:
 
     def _on_data(self, client: Client, data: bytes) -> None:
         session: RtuSession = client.state["session"]
-        session.decoder.dialect = self.line.session.decoder.dialect
+        session.decoder.dialect = self.line.decoder.dialect
         self._write(client, session.receive_data(data))
         if client.state["timer"] is not None:
             client.state["timer"].cancel()
