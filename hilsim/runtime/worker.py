@@ -58,6 +58,7 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
     scenario = load_scenario(scenario_path)
     world = scenario.build_world()
     sonars: dict[str, ImagingSonar] = {}
+    cameras: dict[tuple[str, int], Any] = {}
     placed: dict[str, Any] = {}  # object name -> its current placement (4, 4)
     conn.send(("ready", os.getpid()))
     while True:
@@ -80,6 +81,19 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
                 # the vehicle's altitude: straight down from the body origin
                 down = world.cast(np.asarray([body], dtype=float), np.array([[0.0, 0.0, 1.0]]))
                 conn.send((req_id, True, (frame, seconds, float(down.t[0]))))
+            elif op == "camera":  # a camera picture (the console/recorder ask only while shown/recorded)
+                profile_path, position, rotation, t, max_width = args
+                cam = cameras.get((profile_path, max_width))
+                if cam is None:
+                    from dataclasses import replace
+
+                    from hilsim.sim.camera import Camera, load_camera_profile
+                    prof = load_camera_profile(profile_path)
+                    if max_width and prof.width > max_width:  # same field of view, fewer pixels
+                        prof = replace(prof, width=int(max_width),
+                                       height=max(1, round(prof.height * max_width / prof.width)))
+                    cam = cameras[(profile_path, max_width)] = Camera(prof)
+                conn.send((req_id, True, cam.render(world, Pose(position, rotation), time=t).rgb))
             elif op == "altitude":
                 (position,) = args
                 hits = world.cast(np.asarray([position], dtype=float), np.array([[0.0, 0.0, 1.0]]))

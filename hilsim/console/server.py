@@ -1,0 +1,253 @@
+"""The console's web server: one page, its assets, and one WebSocket per page.
+
+Built on aiohttp: its server runs on an asyncio loop it is handed (``AppRunner`` +
+``TCPSite``), so it shares the bridge's loop with every link and the scheduler and needs
+no thread, no second loop and no signal handling of its own (uvicorn wants to own the
+loop and the signals; Starlette would need it). One package gives HTTP, WebSockets with
+back-pressure (``await send_bytes`` waits while the socket's buffer is full) and a test
+client.
+
+Exposure: it binds the bridge's address (127.0.0.1 unless ``--bind``). It serves only the
+assets packed in ``hilsim/console/static`` (looked up by name in a fixed table, never a
+path from the URL), sends a Content-Security-Policy that lets the page load nothing and
+connect nowhere but this server, and refuses WebSockets whose ``Origin`` is another site
+(so a web page elsewhere cannot drive the bridge through a browser). At most
+``max_pages`` WebSockets at once (503 beyond, logged at most once a second), each
+message at most 1 kB, commands at most 20 a second per page.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from importlib import resources
+from typing import Any
+
+from aiohttp import WSMsgType, web
+
+from hilsim.console.commands import Refused, fault_menu, parse_command
+from hilsim.console.hub import Hub
+from hilsim.console.scene import scene_description
+
+log = logging.getLogger("hilsim.console")
+
+ASSETS = {"index.html": "text/html", "console.js": "application/javascript", "console.css": "text/css"}
+CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; "
+       "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+SEND_TIMEOUT_S = 10.0   # a page that takes nothing for this long is closed
+COMMANDS_PER_S = 20.0
+
+
+def _asset(name: str) -> bytes:
+    return resources.files("hilsim.console").joinpath("static", name).read_bytes()
+
+
+class Page:
+    """One open page: its WebSocket, one slot per kind of message, and its sender task."""
+
+    def __init__(self, ws: web.WebSocketResponse, peer: str) -> None:
+        self.ws = ws
+        self.peer = peer
+        self.slots: dict[str, str | bytes] = {}
+        self.wake = asyncio.Event()
+        self.show_camera = False
+        self.sent = 0
+        self.dropped = 0
+        self.refused = 0
+        self._budget = COMMANDS_PER_S
+        self._budget_t = time.monotonic()
+
+    def offer(self, kind: str, data: str | bytes) -> None:
+        """Put ``data`` in its slot; an unsent older item there is dropped."""
+        if kind in self.slots:
+            self.dropped += 1
+        self.slots[kind] = data
+        self.wake.set()
+
+    def allow_command(self) -> bool:
+        now = time.monotonic()
+        self._budget = min(COMMANDS_PER_S, self._budget + (now - self._budget_t) * COMMANDS_PER_S)
+        self._budget_t = now
+        if self._budget < 1.0:
+            return False
+        self._budget -= 1.0
+        return True
+
+    async def send_loop(self) -> None:
+        while not self.ws.closed:
+            await self.wake.wait()
+            self.wake.clear()
+            while self.slots and not self.ws.closed:
+                kind = next(iter(self.slots))
+                data = self.slots.pop(kind)
+                coro = self.ws.send_str(data) if isinstance(data, str) else self.ws.send_bytes(data)
+                await asyncio.wait_for(coro, SEND_TIMEOUT_S)
+                self.sent += 1
+
+
+class Console:
+    """The console of a running bridge: ``await start()`` -> endpoint, ``await close()``."""
+
+    def __init__(self, bridge: Any, *, port: int = 0, host: str | None = None, max_pages: int = 8,
+                 camera: Any | None = None) -> None:
+        self.bridge = bridge
+        self.host = host or getattr(bridge, "bind", "127.0.0.1")
+        self.port = int(port)
+        self.max_pages = int(max_pages)
+        self.hub = Hub(bridge, camera)
+        self.refused_pages = 0
+        self.bad_messages = 0
+        self.last_error = ""
+        self._refuse_logged = 0.0
+        self._runner: web.AppRunner | None = None
+        self._menu: list[dict[str, Any]] | None = None
+        self._scene: dict[str, Any] | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    def app(self) -> web.Application:
+        app = web.Application(client_max_size=4096, middlewares=[_headers])
+        app.router.add_get("/", self._index)
+        app.router.add_get("/static/{name}", self._static)
+        app.router.add_get("/ws", self._websocket)
+        return app
+
+    async def start(self) -> str:
+        """Listen; returns the URL (the port is picked free when 0)."""
+        self.hub.start()
+        self._runner = web.AppRunner(self.app(), access_log=None, keepalive_timeout=15.0)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port, shutdown_timeout=1.0, backlog=32)
+        await site.start()
+        server = site._server  # the asyncio server, for the port picked
+        if server is not None and getattr(server, "sockets", None):
+            self.port = int(server.sockets[0].getsockname()[1])
+        log.info("console at %s", self.url)
+        return self.url
+
+    def status(self) -> dict[str, Any]:
+        pages = list(self.hub.pages)
+        return {"clients": len(pages), "sent": sum(p.sent for p in pages),
+                "dropped": sum(p.dropped for p in pages), "refused": self.refused_pages,
+                "bad_messages": self.bad_messages, **({"last_error": self.last_error} if self.last_error else {})}
+
+    # -- handlers -----------------------------------------------------------------
+    async def _index(self, request: web.Request) -> web.Response:
+        return web.Response(body=_asset("index.html"), content_type="text/html")
+
+    async def _static(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        if name not in ASSETS or name == "index.html":
+            raise web.HTTPNotFound(text="no such asset")
+        return web.Response(body=_asset(name), content_type=ASSETS[name])
+
+    def _origin_ok(self, request: web.Request) -> bool:
+        origin = request.headers.get("Origin")
+        if origin is None:  # not a browser (a script, a test client): allowed, it is on this machine
+            return True
+        return origin in (f"http://{request.host}", f"https://{request.host}")
+
+    async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        if not self._origin_ok(request):
+            self._refuse(f"WebSocket from another site ({request.headers.get('Origin', '')[:80]}) refused")
+            raise web.HTTPForbidden(text="cross-site WebSocket refused")
+        if len(self.hub.pages) >= self.max_pages:
+            self._refuse(f"page refused: {self.max_pages} pages open (max_pages)")
+            raise web.HTTPServiceUnavailable(text=f"at most {self.max_pages} pages at once")
+        ws = web.WebSocketResponse(compress=False, max_msg_size=4096, heartbeat=20.0, writer_limit=65536)
+        await ws.prepare(request)
+        page = Page(ws, str(request.remote))
+        self.hub.add_page(page)
+        sender = asyncio.ensure_future(page.send_loop())
+        try:
+            page.offer("hello", json.dumps(self.hello(), separators=(",", ":")))
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT:
+                    await self._command(page, msg.data)
+                elif msg.type == WSMsgType.BINARY:
+                    self._reject(page, "only JSON text messages are accepted")
+                elif msg.type == WSMsgType.ERROR:
+                    break
+                if sender.done():
+                    break
+        except Exception as exc:  # noqa: BLE001 - a page's trouble never reaches the bridge
+            self.last_error = f"page {page.peer}: {type(exc).__name__}: {exc}"[:200]
+            log.warning("console: %s", self.last_error)
+        finally:
+            self.hub.remove_page(page)
+            sender.cancel()
+            await asyncio.gather(sender, return_exceptions=True)
+            if not ws.closed:
+                await ws.close()
+        return ws
+
+    def hello(self) -> dict[str, Any]:
+        if self._scene is None:
+            self._scene = scene_description(self.bridge)
+            self._menu = fault_menu(self.bridge)
+        return {"type": "hello", **self._scene, "faults_menu": self._menu,
+                "endpoints": [e.to_json() for e in self.bridge.endpoints],
+                "cameras": self.hub.camera.mounts if self.hub.camera is not None else [],
+                "sonars": [d.name for d in self.bridge.devices if getattr(d, "needs_renderer", False)],
+                "track": list(self.hub.track), "tick_s": 0.1}
+
+    async def _command(self, page: Page, data: str) -> None:
+        if not page.allow_command():
+            self._reject(page, f"too many commands (at most {COMMANDS_PER_S:g} a second)")
+            return
+        try:
+            cmd = parse_command(data, self._menu or fault_menu(self.bridge))
+        except Refused as exc:
+            self._reject(page, str(exc))
+            return
+        if cmd.op == "camera":
+            self.hub.show_camera(page, cmd.show)
+            page.offer("ack", json.dumps({"type": "ack", "op": "camera", "show": cmd.show}))
+            return
+        try:
+            if cmd.op == "fault":
+                self.bridge.faults.inject(cmd.target, cmd.fault, dict(cmd.params))
+            else:
+                self.bridge.faults.clear(cmd.target, cmd.fault)
+        except (ValueError, KeyError, LookupError) as exc:
+            self._reject(page, f"{cmd.op} {cmd.fault} on {cmd.target}: {exc}")
+            return
+        log.warning("console (page %s): %s %s on %s", page.peer, cmd.op, cmd.fault, cmd.target)
+        page.offer("ack", json.dumps({"type": "ack", "op": cmd.op, "target": cmd.target, "fault": cmd.fault}))
+
+    def _reject(self, page: Page, message: str) -> None:
+        self.bad_messages += 1
+        page.refused += 1
+        page.offer("error", json.dumps({"type": "error", "message": message[:300]}))
+
+    def _refuse(self, why: str) -> None:
+        self.refused_pages += 1
+        now = time.monotonic()
+        if now - self._refuse_logged >= 1.0:
+            self._refuse_logged = now
+            log.warning("console: %s (%d refused so far)", why, self.refused_pages)
+
+    async def close(self) -> None:
+        await self.hub.close()
+        for p in list(self.hub.pages):
+            await p.ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+
+@web.middleware
+async def _headers(request: web.Request, handler: Any) -> web.StreamResponse:
+    resp = await handler(request)
+    if isinstance(resp, web.Response) or not getattr(resp, "prepared", False):
+        resp.headers["Content-Security-Policy"] = CSP
+        resp.headers["X-Content-Type-Options"] = "nosniff"
+        resp.headers["Referrer-Policy"] = "no-referrer"
+        resp.headers["Cache-Control"] = "no-store"
+    return resp
