@@ -1,0 +1,142 @@
+"""Where the tasks of a campaign run: a local pool (default) or Ray tasks (``--ray [ADDRESS]``).
+
+A task is a picklable function and its arguments returning a list of result
+rows. The local executor runs mission tasks in threads (each run's work is in
+its own subprocesses) and render tasks in processes (the renders hold the
+GIL). The Ray executor submits each task with the CPUs it needs
+(``num_cpus``), keeps a bounded number in flight, and hands the rows back as
+the tasks finish. Ray is an optional extra (``pip install hilsim[cluster]``).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import io
+import multiprocessing
+import os
+import tarfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+Rows = list[dict[str, Any]]
+OnDone = Callable[["Task", Any], None]
+OnError = Callable[["Task", BaseException], None]
+
+
+@dataclass(frozen=True)
+class Task:
+    label: str
+    fn: Callable[..., Any]
+    args: tuple[Any, ...]
+    cpus: float = 1.0
+
+
+def local_workers(cpus_per_task: float, requested: int | None) -> int:
+    """``--workers`` if given, else the cores divided by what a task needs (at least 1)."""
+    if requested is not None:
+        return max(1, requested)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, int(cores // max(cpus_per_task, 0.1)))
+
+
+def run_local(tasks: list[Task], workers: int, processes: bool, on_done: OnDone, on_error: OnError) -> None:
+    """Run ``tasks`` on ``workers`` threads (or spawned processes); callbacks run in this thread."""
+    if not tasks:
+        return
+    pool: cf.Executor
+    if processes and workers > 1:
+        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    else:
+        pool = cf.ThreadPoolExecutor(workers, thread_name_prefix="campaign")
+    futures: dict[cf.Future[Any], Task] = {}
+    try:
+        for t in tasks:
+            futures[pool.submit(t.fn, *t.args)] = t
+        for fut in cf.as_completed(futures):
+            t = futures.pop(fut)
+            exc = fut.exception()
+            if exc is not None:
+                on_error(t, exc)
+            else:
+                on_done(t, fut.result())
+    finally:
+        for fut in futures:
+            fut.cancel()
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def ray_available() -> str | None:
+    """None when Ray imports, else why not."""
+    try:
+        import ray  # noqa: F401
+    except ImportError as exc:
+        return f"ray is not installed ({exc}); pip install 'hilsim[cluster]'"
+    return None
+
+
+def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
+    """Connect to Ray: a local instance on loopback when ``address`` is None, else that cluster."""
+    why = ray_available()
+    if why:
+        raise RuntimeError(why)
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # no usage report leaves the machine
+    import ray
+
+    if ray.is_initialized():
+        return ray
+    if address is None:
+        ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
+                 log_to_driver=False, logging_level="WARNING")
+    else:
+        ray.init(address=address, log_to_driver=False, logging_level="WARNING")
+    return ray
+
+
+def run_ray(tasks: list[Task], on_done: OnDone, on_error: OnError, max_in_flight: int = 256) -> None:
+    """Run ``tasks`` as Ray tasks (``ray_init`` first), ``num_cpus`` each; callbacks run in this thread."""
+    import ray
+
+    remote = ray.remote(_call)
+    pending: dict[Any, Task] = {}
+    queue = list(reversed(tasks))
+    try:
+        while queue or pending:
+            while queue and len(pending) < max_in_flight:
+                t = queue.pop()
+                ref = remote.options(num_cpus=t.cpus, max_retries=0, name=t.label[:60]).remote(t.fn, t.args)
+                pending[ref] = t
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                t = pending.pop(ref)
+                try:
+                    result = ray.get(ref)
+                except Exception as exc:  # noqa: BLE001 - a task's failure is recorded, the campaign goes on
+                    on_error(t, exc)
+                else:
+                    on_done(t, result)
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+
+
+def _call(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
+    return fn(*args)
+
+
+def pack(folder: Path, exclude: tuple[str, ...] = ()) -> bytes:
+    """A folder as gzip'd tar bytes (regular files and folders; ptys, sockets and links left out)."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        for p in sorted(folder.rglob("*")):
+            rel = p.relative_to(folder)
+            if rel.parts[0] in exclude or p.is_symlink() or not (p.is_file() or p.is_dir()):
+                continue
+            tar.add(p, arcname=str(rel), recursive=False)
+    return buf.getvalue()
+
+
+def unpack(data: bytes, dest: Path) -> None:
+    dest.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+        tar.extractall(dest, filter="data")
