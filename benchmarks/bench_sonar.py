@@ -23,7 +23,13 @@ against every polygon) and trimesh's default engine (TrimeshCaster). Those two
 are timed on an evenly spaced subset of the frame's rays when a full frame
 would take too long, and extrapolated linearly per ray (their cost is linear
 in the ray count); the output says when it did so. Ratios are against Embree
-measured in the same run.
+measured in the same run. The full-model frame is also given as a ratio to the
+raw cast of its rays (``EmbreeCaster.intersect`` alone), measured interleaved
+(cast, frame, cast, frame, ...) so that a load change on a shared machine hits
+both alike: best to best, and the median of the per-pair ratios.
+
+``--quick``: only the tuned-allocator Embree rates and the full-frame ratio
+(no default-allocator pass, no reference casters), for repeated runs.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ os.sched_setaffinity(0, {0})
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
+import argparse  # noqa: E402
 import ctypes  # noqa: E402
 import functools  # noqa: E402
 import math  # noqa: E402
@@ -159,7 +166,7 @@ class Scene:
         self.settings = {
             "paper's model (no spreading, realism off)": clean.replace(spread=False),
             ARTIFACT_FREE: clean,
-            "full model (spreading + beam pattern + speckle + noise + absorption)": full,
+            FULL: full,
         }
         self.sonar = ImagingSonar(profile, full, seed=0)
         self.best: dict[str, float] = {}
@@ -170,6 +177,28 @@ class Scene:
             med, self.best[name], n = frame_times(functools.partial(self.sonar.render, self.world, self.pose, s))
             print(f"  Embree  {name:70s} {1 / self.best[name]:6.1f} frames/s best, {1 / med:6.1f} median "
                   f"({self.best[name] * 1e3:.1f} / {med * 1e3:.1f} ms, {n} frames)")
+
+    def cast_ratio(self, pairs: int = 60) -> None:
+        """Full-model frame time over the raw cast of the same rays, interleaved."""
+        full = self.settings[FULL]
+        dirs_s, _ = self.sonar.rays(full)
+        dirs = self.pose.apply_dirs(dirs_s)
+        origins = np.broadcast_to(self.pose.position, dirs.shape).copy()
+        caster = self.world.caster
+        self.sonar.render(self.world, self.pose, full)
+        cast, frame = [], []
+        for i in range(pairs):
+            t0 = time.perf_counter()
+            caster.intersect(origins, dirs, full.range_min, full.range_max)
+            t1 = time.perf_counter()
+            self.sonar.render(self.world, self.pose, full, frame_index=i)
+            t2 = time.perf_counter()
+            cast.append(t1 - t0)
+            frame.append(t2 - t1)
+        c, f = np.array(cast), np.array(frame)
+        print(f"  full frame / raw cast (EmbreeCaster.intersect of its {len(dirs)} rays), {pairs} interleaved pairs: "
+              f"{f.min() / c.min():.2f}x best to best ({f.min() * 1e3:.1f} / {c.min() * 1e3:.1f} ms), "
+              f"{np.median(f / c):.2f}x median of pair ratios; load average {os.getloadavg()[0]:.2f}")
 
     def other_casters(self, ref_seconds: float) -> None:
         clean = self.settings[ARTIFACT_FREE]
@@ -202,9 +231,13 @@ class Scene:
 
 
 ARTIFACT_FREE = "artifact-free (spreading, realism off)"
+FULL = "full model (spreading + beam pattern + speckle + noise + absorption)"
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="tuned-allocator rates and the full-frame ratio only")
+    args = ap.parse_args()
     cpu = "?"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -215,16 +248,22 @@ def main() -> None:
         pass
     print("hilsim imaging-sonar benchmark: 96 beams x 512 samples, 96 x 1000 rays (DIDSON HF)")
     print(f"pinned to CPU core {sorted(os.sched_getaffinity(0))} (os.sched_setaffinity), BLAS threads 1; {cpu}; "
-          f"Python {platform.python_version()}, numpy {np.__version__}, trimesh {trimesh.__version__}")
+          f"Python {platform.python_version()}, numpy {np.__version__}, trimesh {trimesh.__version__}; "
+          f"load average {os.getloadavg()[0]:.2f}")
     t0 = time.perf_counter()
     scenes = [Scene("a: water tank", *tank_scene()), Scene("b: terrain heightfield", *terrain_scene())]
-    print("\n-- Embree, glibc's default allocator")
-    for sc in scenes:
-        sc.embree_rates()
-    tuned = tune_allocator()
+    if not args.quick:
+        print("\n-- Embree, glibc's default allocator")
+        for sc in scenes:
+            sc.embree_rates()
+    tuned = tune_allocator()  # as the render worker does
     print(f"\n-- Embree, allocator tuned with mallopt (keep freed memory): {'on' if tuned else 'unavailable'}")
     for sc in scenes:
         sc.embree_rates()
+        sc.cast_ratio()
+    if args.quick:
+        print(f"\ntotal benchmark time {time.perf_counter() - t0:.0f} s")
+        return
     print("\n-- the same frame's ray casting with the paper's method and trimesh's default engine")
     for sc, budget in zip(scenes, (6.0, 12.0)):
         sc.other_casters(budget)
