@@ -199,8 +199,10 @@ class Message:
 
     @property
     def is_request(self) -> bool:
+        """A request for a message: ``general_request`` (id 6), or an empty packet of an id whose
+        layout has fields (the protocol's legacy request)."""
         d = MESSAGES[self.message_id]
-        return not self.payload and (bool(d.fields) or d.tail is not None)
+        return self.message_id == 6 or (not self.payload and (bool(d.fields) or d.tail is not None))
 
 
 @dataclass(frozen=True)

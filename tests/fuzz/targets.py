@@ -36,10 +36,12 @@ from typing import Any, Callable, Sequence
 from hilsim.protocols import aris, ddf, ddf_commands, dronecan, modbus, oculus, slcan, socketcand, vesc_can, vesc_uart, vrcsr
 from hilsim.protocols import modbus_device as mb
 from hilsim.protocols import keller_bus, witmotion_uart
+from hilsim.protocols import dvl_json, dvl_serial, nmea, ping_protocol
 from tests.fuzz import adapters as A
 from tests.fuzz import links as L
 from tests.fuzz import samples as S
 from tests.fuzz import samples_serial_sensors as SS
+from tests.fuzz import samples_navigation as SN
 from tests.fuzz.adapters import Closed, Events, PeerError, Reply
 from tests.fuzz.events import Canon, badly_typed
 from tests.fuzz.samples import Sample
@@ -266,6 +268,30 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
         make=A.driven(witmotion_uart.PacketDecoder), bound=witmotion_uart.PACKET_SIZE - 1,
         measure="PacketDecoder.buffered_bytes", samples=SS.witmotion_packet_samples,
         oversize=lambda: SS.head_oversize(b"\x55\x53"), chunk_dependent=(witmotion_uart.Junk,)),
+    Target(
+        "dvl-json", "Water Linked DVL JSON command lines (DVL side): dvl_json.CommandDecoder",
+        make=A.driven(dvl_json.CommandDecoder), bound=dvl_json.MAX_LINE,
+        measure="CommandDecoder.buffered_bytes (the unfinished line)",
+        samples=SN.dvl_json_samples, oversize=S.text_oversize(b'{"command": "', b"x"), sync=b"\n"),
+    Target(
+        "dvl-serial", "Water Linked DVL serial commands (DVL side): dvl_serial.SerialCommandDecoder",
+        make=A.driven(dvl_serial.SerialCommandDecoder), bound=dvl_serial.MAX_LINE,
+        measure="SerialCommandDecoder.buffered_bytes (the unfinished line)",
+        samples=SN.dvl_serial_samples, oversize=S.text_oversize(b"wcs,", b"1"), sync=b"\n"),
+    Target(
+        "nmea", "NMEA 0183 sentences (host side): nmea.NmeaDecoder",
+        make=A.driven(nmea.NmeaDecoder), bound=2 * nmea.MAX_SENTENCE,
+        measure="NmeaDecoder.buffered_bytes (the unfinished line)",
+        samples=SN.nmea_samples, oversize=S.text_oversize(b"$GPGGA,", b"1"), sync=b"\r\n"),
+    Target(
+        "ping-protocol", "Blue Robotics ping-protocol packets (device side): ping_protocol.PingDecoder",
+        make=A.driven(ping_protocol.PingDecoder),
+        bound=ping_protocol.HEADER_LEN + ping_protocol.MAX_PAYLOAD + ping_protocol.CHECKSUM_LEN - 1,
+        measure="PingDecoder.buffered_bytes (one packet at most)",
+        samples=SN.ping_samples, oversize=SN.ping_oversize, chunk_dependent=(ping_protocol.Junk,),
+        resync_after=ping_protocol.HEADER_LEN + ping_protocol.MAX_PAYLOAD + ping_protocol.CHECKSUM_LEN,
+        resync_note="a 'BR' in garbage (or a cut packet) announces up to max_payload bytes; the decoder waits "
+                    "for them (as the device's byte-by-byte parser does) and drops them with a bad checksum"),
 ]}
 
 
