@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 from hilsim.runtime.clock import Clock, VirtualClock
 
 if TYPE_CHECKING:
+    from hilsim.sim.contact import ContactInfo, ContactModel
     from hilsim.sim.state import VehicleState
     from hilsim.sim.thrusters import ThrusterSet
     from hilsim.sim.vehicle import Current, Vehicle
@@ -128,8 +129,12 @@ class Scheduler:
             self.events.remove(event)
 
     def stop(self) -> None:
-        """Make a running :meth:`run` / :meth:`run_async` return after the current tick."""
+        """Make a running :meth:`run` / :meth:`run_async` return after the current tick (a clock
+        that waits for someone else's time, :class:`~hilsim.runtime.clock.LockstepClock`, is woken)."""
         self._stopping = True
+        wake = getattr(self.clock, "wake", None)
+        if wake is not None:
+            wake()
 
     def _push(self, ev: PeriodicEvent) -> None:
         self._seq += 1
@@ -230,6 +235,9 @@ class Scheduler:
                 break
             t, ev = nxt
             await self.clock.sleep_until_async(t)
+            if self._stopping and self.clock.now() < t:  # woken to stop before its time: not run
+                self._push(ev)
+                break
             self._begin(t, ev)
             result = ev.callback(t)
             if inspect.isawaitable(result):
@@ -254,13 +262,19 @@ class VehicleLoop:
 
     Physics runs every ``1 / physics_rate`` [s] (priority 0): it integrates
     from the state's time to the tick's time, so a skipped tick lengthens the
-    step instead of losing time. Each sensor runs at its own rate and offset
+    step instead of losing time, then the contact step
+    (:class:`hilsim.sim.contact.ContactModel`: the hull against ``world`` and the
+    water surface) corrects the state. Each sensor runs at its own rate and offset
     (priority 10, after the physics of the same instant) and passes its
-    reading to ``on_reading(sensor, reading)``.
+    reading to ``on_reading(sensor, reading)``. ``tick_listeners`` are called
+    after every physics tick as ``listener(state, contact_info)`` (the ground truth).
     """
 
     def __init__(self, vehicle: "Vehicle", thrusters: "ThrusterSet | None", state: "VehicleState",
-                 current: "Current | None" = None, physics_rate: float = DEFAULT_PHYSICS_RATE):
+                 current: "Current | None" = None, physics_rate: float = DEFAULT_PHYSICS_RATE,
+                 world: Any = None, contacts: "ContactModel | None" = None):
+        from hilsim.sim.contact import ContactModel
+
         self.vehicle = vehicle
         self.thrusters = thrusters
         self.state = state
@@ -268,7 +282,27 @@ class VehicleLoop:
         self.physics_rate = float(physics_rate)
         self.readings: dict[str, Any] = {}
         self.wrench: Sequence[float] = (0.0,) * 6  # used when there are no thrusters
-        self.surface = True  # the vehicle cannot rise above the water surface (depth 0)
+        self.contacts = contacts if contacts is not None else ContactModel.for_profile(vehicle.profile, world)
+        self.tick_listeners: list[Callable[["VehicleState", "ContactInfo"], None]] = []
+
+    @property
+    def world(self) -> Any:
+        """The scene the hull collides with (a :class:`hilsim.sim.world.World`, or None:
+        only the water surface). The bridge sets its own."""
+        return self.contacts.world
+
+    @world.setter
+    def world(self, world: Any) -> None:
+        self.contacts.world = world
+
+    @property
+    def surface(self) -> bool:
+        """Whether the water surface (z = 0) keeps the hull under it."""
+        return self.contacts.surface
+
+    @surface.setter
+    def surface(self, on: bool) -> None:
+        self.contacts.surface = bool(on)
 
     def physics_tick(self, t: float) -> None:
         """Advance the state to time ``t`` [s]."""
@@ -281,16 +315,12 @@ class VehicleLoop:
             new = self.vehicle.step_with_thrusters(state, dt, thrusters, self.current)
         else:
             new = self.vehicle.step(state, dt, self.wrench, self.current)
-        f = new.flat()
-        if f[2] < 0.0 and self.surface:
-            # the water surface: a positively buoyant vehicle floats there (depth 0) instead
-            # of rising out of the water; its upward heave stops
-            v = list(f)
-            v[2] = 0.0
-            v[8] = max(v[8], 0.0)
-            v[14] = max(v[14], 0.0)
-            new = type(new).from_flat(new.time, v)
+        new = self.contacts.step(state, new, dt)
         self.state = new
+        if self.tick_listeners:
+            info = self.contacts.last
+            for listener in self.tick_listeners:
+                listener(new, info)
 
     def attach(self, scheduler: Scheduler, sensors: Sequence[Any] = (),
                on_reading: Callable[[Any, Any], None] | None = None) -> list[PeriodicEvent]:

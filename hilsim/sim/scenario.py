@@ -41,7 +41,8 @@ _TOP_KEYS = ("name", "description", "seed", "water", "materials", "objects", "ve
 _WORLD_KEYS = ("origin", "description")
 _ORIGIN_KEYS = ("lat_deg", "lon_deg", "alt_m")
 _WATER_KEYS = ("impedance_Pa_s_m", "sound_speed_m_s", "density_kg_m3", "attenuation_per_m", "color")
-_MATERIAL_KEYS = ("impedance_Pa_s_m", "color", "acoustic_absorption", "optical_absorption", "description")
+_MATERIAL_KEYS = ("impedance_Pa_s_m", "color", "acoustic_absorption", "optical_absorption", "friction",
+                  "description")
 _OBJECT_KEYS = ("name", "material", "materials", "mesh", "primitive", "position_m", "orientation_deg",
                 "scale", "up_axis", "size_m", "radius_m", "height_m", "sections", "subdivisions",
                 "resolution_m", "relief_m", "seed", "watertight", "description")
@@ -188,6 +189,7 @@ def _load_materials(doc: Doc) -> dict[str, Material]:
             color=_rgb(doc, m, "color", where, (0.5, 0.5, 0.5)),
             acoustic_absorption=number(doc, m, "acoustic_absorption", where, 0.0, lo=0.0, hi=1.0),
             optical_absorption=number(doc, m, "optical_absorption", where, 0.0, lo=0.0, hi=1.0),
+            friction=number(doc, m, "friction", where, Material.friction, lo=0.0, hi=10.0),
         )
     return mats
 

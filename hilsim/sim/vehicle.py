@@ -65,6 +65,7 @@ import numpy as np
 from hilsim.config import Doc, check_keys, load_toml, quantity, require
 from hilsim.resources import find_profile
 from hilsim.sim.ardupilot_frames import ArdupilotTable, check_layout, parse_ardupilot
+from hilsim.sim.contact import Hull, load_hull
 from hilsim.sim.geometry import F64
 from hilsim.sim.state import VehicleState
 from hilsim.sim.thrusters import Thruster, ThrusterProfile, ThrusterSet, load_thruster_profile
@@ -190,6 +191,7 @@ class VehicleProfile:
     rigid_mass: float | None = None
     hydrostatics: Hydrostatics | None = None
     ardupilot: ArdupilotTable | None = None
+    hull: Hull | None = None  # collision hull ([hull], hilsim.sim.contact); None: a point
 
     @property
     def six_dof(self) -> bool:
@@ -212,7 +214,7 @@ def load_vehicle_profile(path: Path | str) -> VehicleProfile:
     :func:`hilsim.resources.find_profile` (beside the file first, then ``devices/``)."""
     path = Path(path)
     doc = load_toml(path)
-    check_keys(doc, doc.data, ("vehicle", "dynamics", "thrusters", "hydrostatics", "ardupilot"), "")
+    check_keys(doc, doc.data, ("vehicle", "dynamics", "thrusters", "hydrostatics", "ardupilot", "hull"), "")
     veh = require(doc, doc.data, "vehicle", "")
     check_keys(doc, veh, ("name", "description", "dofs", "mass", "layout_note"), "vehicle")
     dofs = veh.get("dofs", list(MODELLED_DOFS))
@@ -249,7 +251,7 @@ def load_vehicle_profile(path: Path | str) -> VehicleProfile:
             raise doc.error("ardupilot", "the thrusters do not match ArduSub's " + ardupilot.frame
                             + " layout: " + "; ".join(bad))
     return VehicleProfile(str(veh.get("name", path.stem)), tuple(dofs), params, thrusters, voltage, sources,
-                          rigid, hydro, ardupilot)
+                          rigid, hydro, ardupilot, load_hull(doc))
 
 
 def _load_hydrostatics(doc: Doc, tab: dict, dofs: list[str], params: dict[str, DofParameters],

@@ -27,6 +27,7 @@ class Material:
     color: (3,) linear RGB reflectance in [0, 1].
     acoustic_absorption: fraction [0, 1] of incident acoustic intensity absorbed at the surface.
     optical_absorption: fraction [0, 1] of incident light absorbed at the surface.
+    friction: Coulomb friction coefficient [1] of the vehicle's hull sliding on it (contacts).
     """
 
     name: str
@@ -34,6 +35,7 @@ class Material:
     color: tuple[float, float, float] = (0.5, 0.5, 0.5)
     acoustic_absorption: float = 0.0
     optical_absorption: float = 0.0
+    friction: float = 0.5  # hilsim.sim.contact.DEFAULT_FRICTION
 
 
 @dataclass(frozen=True)

@@ -251,10 +251,13 @@ def test_a_buoyant_vehicle_floats_at_the_surface_instead_of_leaving_the_water():
     from hilsim.sim.vehicle import Vehicle, load_vehicle_profile
 
     profile = load_vehicle_profile(find_profile("vehicles", "cyclops"))
+    # the hull's top (0.3 m above the body origin) stops at the surface (issue #12), within the
+    # contact's 1 mm resting overlap; before, the body origin itself stopped at depth 0
+    top = -profile.hull.top
     loop = VehicleLoop(Vehicle(profile), profile.thruster_set(),
-                       VehicleState(position=np.array([0.0, 0.0, 0.05])))
+                       VehicleState(position=np.array([0.0, 0.0, top + 0.05])))
     sched = Scheduler(VirtualClock())
     loop.attach(sched)
     sched.run(until=120.0)  # W_w = -2.5 N: it rises 0.05 m in a few seconds, then floats
-    assert loop.state.depth == 0.0
+    assert top - 1e-3 - 1e-9 <= loop.state.depth <= top
     assert loop.state.velocity[2] >= 0.0
