@@ -10,6 +10,16 @@ If the worker dies or does not answer within ``timeout`` seconds, it is
 killed and started again; the request in flight fails with
 :class:`~hilsim.devices.base.RenderFailed`, which the device counts (the
 gap shows in its frame numbers) while every other device carries on.
+
+Deadline-aware rendering: a sonar request may carry its budget (the device's
+ping period [s]). When a frame takes more than ``ADAPT_HIGH`` of its budget (wall
+time from the request to the answer, waiting behind other devices' frames included:
+a busy machine shows there), the frames that follow cast fewer elevation rays per
+beam (:class:`RayGovernor`: levels ``ADAPT_STEP`` apart, never below the profile's
+``min_elevation_rays``; the range spreading keeps the image free of empty bins, its
+width cap ``spread_max_bins`` widened by as much as the rays are fewer);
+after ``ADAPT_CALM`` frames in a row under ``ADAPT_LOW`` of their budget, one level
+more again. A profile with ``adaptive_rays = false`` always gets its ray count.
 """
 
 from __future__ import annotations
@@ -17,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import math
 import multiprocessing as mp
 import os
 import time
@@ -124,6 +135,49 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
             conn.send((req_id, False, f"{type(exc).__name__}: {exc}"))
 
 
+ADAPT_STEP = 0.7    # each level casts this fraction of the rays of the level above
+ADAPT_HIGH = 0.8    # a frame taking over this fraction of its budget lowers the ray count ...
+ADAPT_TARGET = 0.6  # ... by the levels that bring it to about this fraction (cost ~ rays)
+ADAPT_LOW = 0.45    # frames under this fraction of their budget ...
+ADAPT_CALM = 3      # ... this many in a row: one level up
+
+
+class RayGovernor:
+    """Elevation rays per beam for one sonar stream, from how long its frames take.
+
+    full: the requested ray count (the settings'); floor: the fewest (the profile's
+    ``min_elevation_rays``). ``rays`` is the count for the next frame; ``update(seconds,
+    budget)`` [s] tells how long the last one took against its budget.
+    """
+
+    def __init__(self, full: int, floor: int) -> None:
+        floor = max(1, min(int(floor), int(full)))
+        levels = [int(full)]
+        while levels[-1] > floor:
+            levels.append(max(floor, min(levels[-1] - 1, round(full * ADAPT_STEP ** len(levels)))))
+        self.levels = levels
+        self.level = 0
+        self.calm = 0
+
+    @property
+    def rays(self) -> int:
+        return self.levels[self.level]
+
+    def update(self, seconds: float, budget: float) -> None:
+        load = seconds / budget if budget > 0 else math.inf
+        if load > ADAPT_HIGH:
+            steps = max(1, math.ceil(math.log(min(load, 100.0) / ADAPT_TARGET) / math.log(1.0 / ADAPT_STEP)))
+            self.level = min(len(self.levels) - 1, self.level + steps)
+            self.calm = 0
+        elif load < ADAPT_LOW:
+            self.calm += 1
+            if self.calm >= ADAPT_CALM and self.level > 0:
+                self.level -= 1
+                self.calm = 0
+        else:
+            self.calm = 0
+
+
 class RenderWorker:
     """Parent side of the render worker. One request at a time (frames queue up)."""
 
@@ -143,6 +197,8 @@ class RenderWorker:
         self._ids = itertools.count(1)
         self._closed = False
         self.replay: list[tuple[str, tuple[Any, ...]]] = []  # world changes to redo after a restart
+        self.governors: dict[tuple[str, int], RayGovernor] = {}  # (profile, requested rays) -> its governor
+        self._profiles: dict[str, Any] = {}
 
     @property
     def pid(self) -> int | None:
@@ -230,11 +286,43 @@ class RenderWorker:
             return payload
 
     async def render_sonar(self, profile_path: str, pose: Pose, settings: Any, t: float, frame_index: int,
-                           body_position: Any = (0.0, 0.0, 0.0)) -> Any:
+                           body_position: Any = (0.0, 0.0, 0.0), budget_s: float | None = None) -> Any:
         """(SonarFrame, render seconds, altitude [m] below ``body_position``) for a sonar
-        profile at a sensor pose."""
-        out = await self.call("sonar", profile_path, np.asarray(pose.position), np.asarray(pose.rotation),
-                              settings, t, frame_index, np.asarray(body_position, dtype=float))
+        profile at a sensor pose. With ``budget_s`` [s] (the frame's period) the ray count
+        adapts (module docstring); the frame's ``settings.elevation_rays`` says which was used."""
+        governor = None
+        if budget_s is not None and budget_s > 0:
+            profile = self._profiles.get(profile_path)
+            if profile is None:
+                from hilsim.sim.sonar_profile import load_sonar_profile
+
+                profile = self._profiles[profile_path] = load_sonar_profile(profile_path)
+            if profile.adaptive_rays:
+                if settings is None:
+                    settings = profile.default_settings()
+                key = (profile_path, int(settings.elevation_rays))
+                governor = self.governors.get(key)
+                if governor is None:
+                    governor = self.governors[key] = RayGovernor(key[1], profile.min_elevation_rays)
+                if governor.rays != settings.elevation_rays:
+                    # k times fewer rays cover k times wider footprints: the cap of a footprint's
+                    # width [bins] (grazing incidence) scales with them, or bins would stay empty
+                    settings = settings.replace(elevation_rays=governor.rays, spread_max_bins=settings.spread_max_bins
+                                                * settings.elevation_rays / governor.rays)
+        t0 = time.perf_counter()
+        try:
+            out = await self.call("sonar", profile_path, np.asarray(pose.position), np.asarray(pose.rotation),
+                                  settings, t, frame_index, np.asarray(body_position, dtype=float))
+        except RenderFailed:
+            if governor is not None and budget_s is not None:
+                governor.update(2.0 * budget_s, budget_s)
+            raise
+        if governor is not None and budget_s is not None:
+            before, took = governor.rays, time.perf_counter() - t0
+            governor.update(took, budget_s)
+            if governor.rays != before:
+                log.debug("%s: %d elevation rays per beam from the next frame (this one took %.0f ms of %.0f)",
+                          Path(profile_path).stem, governor.rays, 1e3 * took, 1e3 * budget_s)
         self.renders += 1
         return out
 

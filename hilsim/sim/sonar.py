@@ -197,7 +197,8 @@ class _Fan:
 
 @lru_cache(maxsize=32)
 def _fan(az_lo: float, az_hi: float, n_beams: int, el_lo: float, el_hi: float, n_el: int) -> _Fan:
-    dirs, ddphi, beam, dphi = _ray_fan(az_lo, az_hi, n_beams, el_lo, el_hi, n_el)
+    # not through _ray_fan's cache: a live bridge that adapts its ray count keeps several fans
+    dirs, ddphi, beam, dphi = _ray_fan.__wrapped__(az_lo, az_hi, n_beams, el_lo, el_hi, n_el)
     dirs_t = np.ascontiguousarray(dirs.T)
     d = dirs_t.astype(np.float32)
     e = np.ascontiguousarray(ddphi.T, dtype=np.float32)

@@ -153,6 +153,10 @@ class SonarProfile:
     k: the unit-conversion constant of eqs. 6 and 8 [1].
     absorption_db_per_m: one-way water absorption alpha at ``frequency`` [dB/m].
     defaults: the default :class:`SonarSettings`.
+    min_elevation_rays: the fewest elevation rays per beam the live bridge may cast when a
+        frame would miss its period (deadline-aware rendering; the range spreading keeps the
+        image free of empty bins); adaptive_rays: whether it may (False: always
+        ``elevation_rays``, fixed quality).
     seed: default seed of the realism random numbers.
     sources: where each value came from, by dotted profile key.
     """
@@ -171,6 +175,8 @@ class SonarProfile:
     absorption_db_per_m: float
     defaults: SonarSettings
     seed: int = 0
+    min_elevation_rays: int = 100
+    adaptive_rays: bool = True
     sources: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -188,6 +194,10 @@ class SonarProfile:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.absorption_db_per_m < 0.0:
             raise ValueError(f"absorption_db_per_m must be >= 0, got {self.absorption_db_per_m}")
+        if isinstance(self.min_elevation_rays, bool) or not isinstance(self.min_elevation_rays, int) \
+                or not 1 <= self.min_elevation_rays <= self.defaults.elevation_rays:
+            raise ValueError(f"min_elevation_rays must be a whole number in 1..elevation_rays "
+                             f"({self.defaults.elevation_rays}), got {self.min_elevation_rays!r}")
 
     def default_settings(self) -> SonarSettings:
         return self.defaults
@@ -219,7 +229,8 @@ class SonarProfile:
 
 _TOP = ("name", "model", "beams", "window", "acoustics", "gain", "spreading", "realism")
 _SECTIONS: dict[str, tuple[str, ...]] = {
-    "beams": ("count", "azimuth_limits", "elevation_limits", "width_azimuth", "width_elevation", "elevation_rays"),
+    "beams": ("count", "azimuth_limits", "elevation_limits", "width_azimuth", "width_elevation", "elevation_rays",
+              "min_elevation_rays", "adaptive_rays"),
     "window": ("range_min", "range_max", "samples"),
     "acoustics": ("frequency", "frame_rate", "source_intensity", "k", "water_temperature", "absorption"),
     "gain": ("mode", "gain", "tvg", "tvg_spreading", "tvg_absorption", "dynamic_range"),
@@ -285,7 +296,7 @@ _KEY_OF_FIELD = {
     "beam_width_azimuth": "beams.width_azimuth", "beam_width_elevation": "beams.width_elevation",
     "frequency": "acoustics.frequency", "frame_rate": "acoustics.frame_rate",
     "source_intensity": "acoustics.source_intensity", "k": "acoustics.k",
-    "absorption_db_per_m": "acoustics.absorption",
+    "absorption_db_per_m": "acoustics.absorption", "min_elevation_rays": "beams.min_elevation_rays",
 }
 
 
@@ -314,6 +325,8 @@ def load_sonar_profile(path: Path | str) -> SonarProfile:
     bw_az = _qty(doc, b, "width_azimuth", "rad", "beams", src)
     bw_el = _qty(doc, b, "width_elevation", "rad", "beams", src)
     rays = _count(doc, b, "elevation_rays", "beams", src, default=1000)
+    min_rays = _count(doc, b, "min_elevation_rays", "beams", src, default=min(100, rays))
+    adaptive = _flag(doc, b, "adaptive_rays", "beams", True)
 
     w = _section(doc, "window")
     r_min = _qty(doc, w, "range_min", "m", "window", src)
@@ -370,6 +383,7 @@ def load_sonar_profile(path: Path | str) -> SonarProfile:
             beam_width_azimuth=bw_az, beam_width_elevation=bw_el,
             frequency=freq, frame_rate=frame_rate, source_intensity=i0, k=k,
             absorption_db_per_m=alpha, defaults=settings, seed=seed, sources=src,
+            min_elevation_rays=min_rays, adaptive_rays=adaptive,
         )
     except ConfigError:
         raise

@@ -83,3 +83,81 @@ def test_bridge_keeps_streaming_through_a_worker_crash_or_hang(tmp_path, fault):
             except (ProcessLookupError, UnboundLocalError):
                 pass
         assert b.stop() == 0
+
+
+# ------------------------------------------------------------ deadline-aware rendering (issue #15)
+
+from hilsim.runtime.worker import ADAPT_CALM, ADAPT_HIGH, ADAPT_LOW, ADAPT_STEP, RayGovernor  # noqa: E402
+
+
+def test_ray_governor_lowers_on_a_missed_budget_never_below_the_floor_and_recovers_with_slack():
+    g = RayGovernor(1000, 100)
+    assert g.levels[0] == 1000 and g.levels[-1] == 100 and g.levels == sorted(g.levels, reverse=True)
+    for a, b in zip(g.levels, g.levels[1:-1]):
+        assert b == round(1000 * ADAPT_STEP ** g.levels.index(b)) and b < a
+    for _ in range(50):  # fast frames: full quality stays
+        g.update(0.1 * ADAPT_LOW, 0.1)
+    assert g.rays == 1000
+    g.update(0.1 * (ADAPT_HIGH + 0.01), 0.1)  # just over: one level down
+    assert g.rays == g.levels[1]
+    g.update(0.5, 0.1)  # 5x over its budget: enough levels for ~ADAPT_TARGET at cost ~ rays
+    assert g.rays <= 1000 * 0.6 / 5 * 1.5 or g.rays == 100
+    for _ in range(20):  # a hopeless machine: the floor, never below
+        g.update(10.0, 0.1)
+    assert g.rays == 100
+    g.update(0.1 * (ADAPT_LOW + ADAPT_HIGH) / 2, 0.1)  # in the band: stays
+    assert g.rays == 100
+    for k in range(ADAPT_CALM - 1):  # slack, but not yet for long enough
+        g.update(0.01, 0.1)
+    assert g.rays == 100
+    g.update(0.01, 0.1)
+    assert g.rays == g.levels[-2]
+    for _ in range(ADAPT_CALM * len(g.levels)):
+        g.update(0.01, 0.1)
+    assert g.rays == 1000
+    assert RayGovernor(64, 16).levels[-1] == 16 and RayGovernor(50, 100).levels == [50]
+
+
+def test_worker_lowers_the_ray_count_for_a_tight_budget_and_raises_it_with_slack(tmp_path):
+    """A budget no frame can meet takes the frames to the profile's floor (and their image
+    keeps its echo: no empty bins where the floor is seen); a generous one brings the full
+    count back; no budget, or a profile with adaptive_rays = false, always renders the full count."""
+    prof = find_profile("sonars", "didson_hf")
+    fixed = tmp_path / "didson_fixed.toml"
+    fixed.write_text(prof.read_text().replace("adaptive_rays      = true", "adaptive_rays      = false"))
+    assert "adaptive_rays      = false" in fixed.read_text()
+
+    from hilsim.sim.sonar_profile import load_sonar_profile
+
+    quiet = load_sonar_profile(prof).default_settings().realism_off()  # an empty bin stays empty
+
+    async def main():
+        w = RenderWorker(find_scenario(None), seed=1, timeout=20.0)
+        await w.start()
+        try:
+            full, _, _ = await w.render_sonar(str(prof), POSE, quiet, 0.0, 0)
+            assert full.settings.elevation_rays == 1000 and full.n_rays == 96 * 1000
+            rays = []
+            for i in range(6):
+                f, _, _ = await w.render_sonar(str(prof), POSE, quiet, 0.0, i, budget_s=1e-4)
+                rays.append(f.settings.elevation_rays)
+                assert f.n_rays == 96 * f.settings.elevation_rays
+            assert rays[0] == 1000 and rays[-1] == 100 and rays == sorted(rays, reverse=True), rays
+            low = f
+            # the floor's echo, per beam, over the same range rows as at full count: no empty bins
+            rows = np.flatnonzero((full.intensity > 0).all(axis=1))
+            assert rows.size > 20 and (low.intensity[rows] > 0).all()
+            # the image level of the lit rows is the same (energy per ray is 1 / rays)
+            assert np.median(low.intensity[rows] / full.intensity[rows]) == pytest.approx(1.0, rel=0.25)
+            up = []
+            for i in range(ADAPT_CALM * 8 + 2):
+                f, _, _ = await w.render_sonar(str(prof), POSE, quiet, 0.0, i, budget_s=100.0)
+                up.append(f.settings.elevation_rays)
+            assert up == sorted(up) and up[-1] == 1000, up
+            for i in range(3):  # fixed quality: the budget changes nothing
+                f, _, _ = await w.render_sonar(str(fixed), POSE, None, 0.0, i, budget_s=1e-4)
+                assert f.settings.elevation_rays == 1000
+        finally:
+            await w.close()
+
+    asyncio.run(asyncio.wait_for(main(), 120))

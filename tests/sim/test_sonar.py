@@ -439,6 +439,9 @@ def broken(tmp_path: Path, old: str, new: str) -> Path:
         ("samples   = { value = 512,", "samples   = { value = 51.2,", "window.samples", "whole number"),
         ("speckle      = true", "speckle      = 1", "realism.speckle", "true or false"),
         ('mode           = "fixed"', 'mode           = "auto"', "gain.mode", "must be one of"),
+        ("min_elevation_rays = { value = 100,", "min_elevation_rays = { value = 2000,", "beams.min_elevation_rays",
+         "1..elevation_rays (1000)"),
+        ("adaptive_rays      = true", "adaptive_rays      = 0", "beams.adaptive_rays", "true or false"),
     ],
 )
 def test_broken_profile_names_the_key(tmp_path: Path, old: str, new: str, key: str, words: str) -> None:
@@ -621,3 +624,27 @@ def test_the_faster_speckle_and_noise_have_the_statistics_before(hf: SonarProfil
         a, b = new[:, band], old[:, band]
         assert a.mean() == pytest.approx(b.mean(), abs=1.5), band[0]
         assert a.std() == pytest.approx(b.std(), rel=0.1, abs=0.5), band[0]
+
+
+@pytest.mark.parametrize("tilt_deg, n_samples", [(30.0, 512), (20.0, 1024)])
+def test_a_tenth_of_the_rays_with_spreading_leaves_no_empty_bin(hf: SonarProfile, tilt_deg: float,
+                                                                  n_samples: int) -> None:
+    """Deadline-aware rendering casts as few as the profile's min_elevation_rays (100 of
+    1000): with the spreading (its width cap widened as the rays are fewer, as the render
+    worker does) every range bin the floor lights at 1000 rays is lit at 100, at the same
+    level (energy per ray is 1/rays); without spreading the same frame has empty bins."""
+    assert hf.min_elevation_rays == 100 and hf.adaptive_rays
+    world = floor_world(1.2)
+    s = quiet(hf, n_samples=n_samples)
+    sonar = ImagingSonar(hf, s)
+    pose = pitched_down(tilt_deg)
+    full = sonar.render(world, pose, s)
+    rows = np.flatnonzero((full.intensity > 0).all(axis=1))  # range rows the floor fills at full count
+    assert rows.size > 50
+    few = s.replace(elevation_rays=100, spread_max_bins=s.spread_max_bins * 10)
+    low = sonar.render(world, pose, few)
+    assert low.n_rays == hf.n_beams * 100
+    assert np.count_nonzero(low.intensity[rows] == 0) == 0
+    assert np.median(low.intensity[rows] / full.intensity[rows]) == pytest.approx(1.0, rel=0.01)
+    literal = sonar.render(world, pose, few.replace(spread=False))
+    assert np.count_nonzero(literal.intensity[rows] == 0) > 100
