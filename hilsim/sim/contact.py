@@ -7,12 +7,14 @@ vehicle profile) with every object of the :class:`~hilsim.sim.world.World`
 and with the water surface (NED z = 0: a buoyant vehicle floats with the
 hull's top there), and
 
-1. pushes the hull out along each contact normal, down to a resting overlap
-   of ``slop`` (1 mm) so that a resting contact stays a contact;
-2. removes the inward normal velocity with impulses through the vehicle's
+1. removes the inward normal velocity with impulses through the vehicle's
    inverse mass (no restitution: nothing bounces, kinetic energy never grows);
-3. applies Coulomb friction, ``|J_t| <= mu J_n`` per contact, with the
+2. applies Coulomb friction, ``|J_t| <= mu J_n`` per contact, with the
    material's ``friction`` (none at the water surface);
+3. moves the hull back by what the removed velocity moved it during the step
+   (along the contact: a resting vehicle does not creep) and pushes it out along
+   each normal down to a resting overlap of ``slop`` (1 mm), never further (it
+   stays touching, so a resting contact stays a contact);
 4. shows the velocity change in ``state.acceleration`` (the IMU feels the
    impact) and returns the new state.
 
@@ -400,16 +402,17 @@ class ContactModel:
             if change < 1e-12:
                 break
         # 4. positions: undo what the removed velocity moved during the step (its mean over the
-        # step, for a velocity that grew steadily: the step's change / 2), so a resting contact does
-        # not creep; then push out along the normals what still overlaps, leaving the slop
+        # step, for a velocity that grew steadily: the step's change / 2) along the contact (so a
+        # resting contact does not creep); along each normal, push out what overlaps beyond the
+        # slop and no further (never lift off: the hull stays touching)
         vf = _mv(rl, vb0)
         h = 0.5 * dt
         dp = [(v[0] - vf[0]) * h, (v[1] - vf[1]) * h, (v[2] - vf[2]) * h]
         for _ in range(_ITERATIONS):
             moved = False
             for ct, n in zip(contacts, normals):
-                r = ct.depth - self.slop - _dot(n, dp)
-                if r > 1e-12:
+                r = max(ct.depth - self.slop, 0.0) - _dot(n, dp)
+                if abs(r) > 1e-12:
                     dp = [dp[0] + n[0] * r, dp[1] + n[1] * r, dp[2] + n[2] * r]
                     moved = True
             if not moved:
