@@ -229,3 +229,22 @@ def test_a_reversed_motor_is_refused_naming_the_key(tmp_path: Path) -> None:
     bad.write_text(text.replace(marker, marker.replace("direction = 1", "direction = -1")))
     with pytest.raises(ConfigError, match=r"ardupilot.*servo 3"):
         load_vehicle_profile(bad)
+
+
+def test_a_uniform_current_carries_the_vehicle_along(heavy: VehicleProfile) -> None:
+    """Damping acts on the velocity relative to the water: at steady state the vehicle drifts
+    with a uniform current (NED), plus its own sinking drift, and stays level."""
+    from hilsim.sim.vehicle import Current
+
+    vehicle = Vehicle6DOF(heavy)
+    current = Current.constant((0.2, -0.1, 0.0))
+    state = VehicleState(position=np.array([0.0, 0.0, 5.0]), attitude=np.array([0.0, 0.0, 0.7]))
+    for _ in range(1500):
+        state = vehicle.step(state, 0.02, (0.0,) * 6, current)
+    # the relative speed left decays no faster than sway's quadratic-only damping allows,
+    # v0 / (1 + k_q v0 t / m) < m / (k_q t), plus the slow turn of the Munk moment
+    sway = heavy.params["sway"]
+    ned = state.pose.rotation @ state.velocity
+    assert ned[:2] == pytest.approx([0.2, -0.1], abs=1.5 * sway.mass / (sway.quadratic_damping * 30.0))
+    assert ned[2] == pytest.approx(vehicle.steady_speed("heave", 0.0), rel=0.02)
+    assert abs(state.attitude[0]) < 0.01 and abs(state.attitude[1]) < 0.01  # Munk moments tilt it a little
