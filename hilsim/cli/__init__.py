@@ -1,8 +1,16 @@
-"""Command line: ``hilsim render | ...`` (``python -m hilsim`` too)."""
+"""Command line: ``hilsim run | record | render | experiment | campaign`` (``python -m hilsim`` too).
+
+The package gathers every command: this module builds the parser and dispatches;
+each command's code is a module beside it (:mod:`hilsim.cli.run` for ``run`` and
+``record``, :mod:`hilsim.cli.render`, :mod:`hilsim.cli.experiment`), imported only
+when its command runs. A command that lives with its feature registers itself in
+:data:`PLUGINS` (module with ``add_parser(subparsers)`` and ``run(args) -> int``).
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
 from pathlib import Path
@@ -11,6 +19,9 @@ from typing import Sequence
 from hilsim import __version__
 from hilsim.config import ConfigError
 
+
+#: commands that live with their feature: name -> module with add_parser(subparsers) and run(args)
+PLUGINS: dict[str, str] = {}
 
 _COMMON = argparse.ArgumentParser(add_help=False)
 _COMMON.add_argument("--log-level", default=argparse.SUPPRESS, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
@@ -105,6 +116,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_record(sub)
     _add_experiment(sub)
+    for name, module in PLUGINS.items():
+        try:
+            importlib.import_module(module).add_parser(sub)
+        except ImportError as exc:  # an optional feature that is not installed
+            logging.getLogger(__name__).debug("command %s unavailable: %s", name, exc)
     return ap
 
 
@@ -117,17 +133,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         if args.command == "render":
-            from hilsim.render import render_command
+            from hilsim.cli.render import render_command
 
             return render_command(args)
         if args.command == "experiment":
-            from hilsim.experiment import experiment_command
+            from hilsim.cli.experiment import experiment_command
 
             return experiment_command(args)
         if args.command in ("run", "record"):
-            from hilsim.runtime.run import record_command, run_command
+            from hilsim.cli.run import record_command, run_command
 
             return run_command(args) if args.command == "run" else record_command(args)
+        if args.command in PLUGINS:
+            return int(importlib.import_module(PLUGINS[args.command]).run(args))
     except (ConfigError, FileNotFoundError, ValueError, KeyError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"hilsim {args.command}: error: {msg}", file=sys.stderr)

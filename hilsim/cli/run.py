@@ -63,13 +63,12 @@ def record_command(args: argparse.Namespace) -> int:
 
     async def go() -> None:
         await bridge.start()
-        dev = next(d for d in bridge.devices if d.protocol == "ddf-stream")
-        period = 1.0 / dev.rate  # type: ignore[attr-defined]
+        dev = next(d for d in bridge.devices if args.out.suffix.lower() in d.records)
         try:
-            while dev.frames_recorded < args.frames:  # type: ignore[attr-defined]
-                await bridge.run(bridge.vehicle.state.time + period)
-                print(f"\rrecorded {dev.frames_recorded}/{args.frames} frames", end="", file=sys.stderr)  # type: ignore[attr-defined]
-            print(file=sys.stderr)
+            while (done := int(dev.status().get("recorded", 0))) < args.frames:
+                await bridge.run(bridge.vehicle.state.time + 0.01)  # below one frame period
+                print(f"\rrecorded {done}/{args.frames} frames", end="", file=sys.stderr)
+            print(f"\rrecorded {done}/{args.frames} frames", file=sys.stderr)
         finally:
             await bridge.close()
 

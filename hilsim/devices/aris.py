@@ -34,11 +34,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint, RenderedFrame
-from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, open_udp, serve_vendor_port
-from hilsim.links.tcp import Client, TcpServer
+from hilsim.devices.base import DeviceContext, Endpoint, RenderedFrame, TcpServerDevice
+from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, publish_frame
+from hilsim.links.tcp import Client
+from hilsim.links.udp import open_udp
 from hilsim.protocols import aris as ar
 from hilsim.protocols.aris_file import ArisWriter
+from hilsim.protocols.codec import drain
 from hilsim.sim.sonar_profile import SonarSettings
 
 log = logging.getLogger(__name__)
@@ -46,9 +48,12 @@ log = logging.getLogger(__name__)
 RECORDER = -1  # the pinger key of the recording
 
 
-class ArisDevice(Device):
+class ArisDevice(TcpServerDevice):
     protocol = "aris"
+    needs_renderer = True
+    records = (".aris",)
     OPTIONS = {
+        **TcpServerDevice.OPTIONS,
         "sensor": "sonar",
         "profile_hf": "aris1800_hf",    # 96-beam ping modes
         "profile_lf": "aris1800_lf",    # 48-beam ping modes
@@ -63,48 +68,45 @@ class ArisDevice(Device):
         "max_clients": 4,
         "max_datagram": ar.MAX_DATAGRAM,
     }
+    COUNTERS = ("frames", "datagrams", "bad_commands", "invalid_settings", "refused_receivers", "dropped_silent",
+                "recorded")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        mount = ctx.scenario.sensor(str(self.options["sensor"]))
-        if mount.kind != "sonar":
-            raise ValueError(f"device {name!r}: sensor {mount.name!r} is a {mount.kind}, not a sonar")
-        self.mount = mount.name
+        self.mount = self.sonar_mount()
         self.profile_refs = {96: str(self.options["profile_hf"]), 48: str(self.options["profile_lf"])}
-        self.profiles = {n: ctx.sonar_profile(ref) for n, ref in self.profile_refs.items()}
-        for n, p in self.profiles.items():
+        self.profiles = {}
+        for n, ref in self.profile_refs.items():
+            key = "profile_hf" if n == 96 else "profile_lf"
+            try:
+                self.profiles[n] = p = ctx.sonar_profile(ref)
+            except (KeyError, ValueError, OSError) as exc:
+                raise self.option_error(key, str(exc.args[0] if exc.args else exc)) from None
             if p.n_beams != n:
-                raise ValueError(f"device {name!r}: profile {p.name!r} has {p.n_beams} beams, expected {n}")
-        self.system_type = int(self.options["system_type"])
+                raise self.option_error(key, f"profile {p.name!r} has {p.n_beams} beams, expected {n}")
+        self.system_type = self.option_int("system_type", 0, 255)
+        self.option_int("beacon_port", 1, 65535)
+        self.option_number("beacon_interval_s", 0.0, 60.0, lo_open=True)
+        self.option_number("keepalive_timeout_s", 0.0, lo_open=True)
         self.sound_speed = float(ctx.scenario.water.sound_speed)
-        self.max_datagram = int(self.options["max_datagram"])
-        if not 256 <= self.max_datagram <= 65507:
-            raise ValueError(f"device {name!r}: max_datagram {self.max_datagram} outside 256..65507")
-        self.server: TcpServer | None = None
+        self.max_datagram = self.option_int("max_datagram", 256, 65507)
         self.pinger = ClientPinger(ctx, name, self.mount, self._send_frames)
         self._udp: asyncio.DatagramTransport | None = None
-        self._events: list[Any] = []
         self._writer: ArisWriter | None = None
         self.record_path = self.option_output_path("record") if self.options["record"] else None
-        self.frames_sent = 0
-        self.datagrams_sent = 0
-        self.frames_recorded = 0
-        self.bad_commands = 0
-        self.invalid_settings = 0
-        self.refused_receivers = 0
-        self.dropped_silent = 0
+
+    def record_to(self, path: Path) -> None:
+        self.record_path = Path(path)
 
     # -- lifecycle -----------------------------------------------------------------
 
     async def start(self) -> list[Endpoint]:
-        self.server, host, port = await serve_vendor_port(self.name, self._server, int(self.options["port"]))
-        self._udp = await open_udp(self.ctx.bind)
+        host, port = await self.serve(vendor_port=True, queue_len=4, write_buffer=64 * 1024)
+        self._udp = self.own(await open_udp(self.ctx.bind))
         interval = float(self.options["beacon_interval_s"])
         self._beacon(0.0)
-        self._events.append(self.ctx.scheduler.add(f"{self.name}.beacon", interval, self._beacon, priority=30,
-                                                   tolerance=interval))
-        self._events.append(self.ctx.scheduler.add(f"{self.name}.keepalive", 0.25, self._check_keepalive,
-                                                   priority=30, tolerance=0.25))
+        self.every("beacon", interval, self._beacon, priority=30, tolerance=interval)
+        self.every("keepalive", 0.25, self._check_keepalive, priority=30, tolerance=0.25)
         if self.record_path is not None:
             self._writer = ArisWriter(self.record_path, {"SN": int(self.options["serial_number"]),
                                                          "strHeaderID": f"hilsim {self.name}".encode()[:255]})
@@ -113,34 +115,16 @@ class ArisDevice(Device):
                          {"beacon": f"udp {self.ctx.broadcast}:{self.options['beacon_port']}",
                           "beams": "96 (HF) / 48 (LF)"})]
 
-    def _server(self, port: int) -> TcpServer:
-        return TcpServer(self.name, self.ctx.bind, port, max_clients=int(self.options["max_clients"]),
-                         queue_len=4, write_buffer=64 * 1024, on_connect=self._on_connect,
-                         on_data=self._on_data, on_disconnect=self._on_disconnect)
-
-    async def close(self) -> None:
-        for ev in self._events:
-            self.ctx.scheduler.remove(ev)
-        self._events.clear()
+    async def on_close(self) -> None:
         await self.pinger.close()
-        if self.server is not None:
-            await self.server.close()
-            self.server = None
-        if self._udp is not None:
-            self._udp.close()
-            self._udp = None
         if self._writer is not None:
             self._writer.close()
-            log.info("%s: recorded %d frames to %s", self.name, self.frames_recorded, self.record_path)
+            log.info("%s: recorded %d frames to %s", self.name, self.counters["recorded"], self.record_path)
             self._writer = None
 
     def status(self) -> dict[str, float]:
-        st = self.server.stats if self.server is not None else None
-        return {"clients": st.connected if st else 0, "frames": self.frames_sent, "renders": self.pinger.renders,
-                "datagrams": self.datagrams_sent, "busy_skips": self.pinger.busy_skips,
-                "render_failures": self.pinger.failures, "bad_commands": self.bad_commands,
-                "invalid_settings": self.invalid_settings, "refused_receivers": self.refused_receivers,
-                "dropped_silent": self.dropped_silent, "recorded": self.frames_recorded}
+        return {**super().status(), "renders": float(self.pinger.renders), "busy_skips": float(self.pinger.busy_skips),
+                "render_failures": float(self.pinger.failures)}
 
     # -- beacon and keep-alive ------------------------------------------------------------
 
@@ -163,28 +147,26 @@ class ArisDevice(Device):
         for c in list(self.server.clients.values()):
             if now - c.state.get("last_seen", now) > limit:
                 log.info("%s: %s sent nothing for %.1f s: dropped", self.name, c, limit)
-                self.dropped_silent += 1
+                self.counters["dropped_silent"] += 1
                 self.pinger.set(c.id, None)
                 self.server.disconnect(c)
 
     # -- commands ----------------------------------------------------------------------
 
-    def _on_connect(self, client: Client) -> None:
+    def on_connect(self, client: Client) -> None:
         client.state.update(reader=ar.CommandReader(), last_seen=time.monotonic(), receiver=None, settings=None,
                             applied=0, constrained=0, invalid=0, salinity=0, focus=0.0, frame_index=0)
 
-    def _on_disconnect(self, client: Client) -> None:
+    def on_disconnect(self, client: Client) -> None:
         self.pinger.set(client.id, None)
 
-    def _on_data(self, client: Client, data: bytes) -> None:
+    def on_data(self, client: Client, data: bytes) -> None:
         reader: ar.CommandReader = client.state["reader"]
-        reader.receive_data(data)
-        for _ in range(10_000):
-            ev = reader.next_event()
-            if ev is None:
+        for ev in drain(reader, data, limit=10_000):
+            if ev is None:  # the reader's own "no more" (older contract)
                 break
             if isinstance(ev, (ar.BadCommand, ar.Oversize)):
-                self.bad_commands += 1
+                self.counters["bad_commands"] += 1
                 continue
             if isinstance(ev, ar.Junk):
                 continue
@@ -197,14 +179,14 @@ class ArisDevice(Device):
             ip = ev.ip if ev.ip else client.peer.rsplit(":", 1)[0]
             st["receiver"] = None if ip == "0.0.0.0" else (ip, int(ev.port))
             if st["receiver"] is not None and not self._receiver_allowed(ip):
-                self.refused_receivers += 1
+                self.counters["refused_receivers"] += 1
                 log.warning("%s: frame stream receiver %s refused: outside 127.0.0.0/8 (set allow_lan)",
                             self.name, ip)
                 st["receiver"] = None
         elif isinstance(ev, ar.SetAcoustics):
             check = ar.check_settings(ev.settings, self.system_type)
             if check.outcome == "invalid":
-                self.invalid_settings += 1
+                self.counters["invalid_settings"] += 1
                 st["invalid"] = ev.settings.cookie
                 log.info("%s: invalid settings (cookie %d): %s", self.name, ev.settings.cookie,
                          "; ".join(check.reasons))
@@ -301,14 +283,15 @@ class ArisDevice(Device):
 
     def _send_frames(self, entries: list[PingEntry], r: RenderedFrame, index: int) -> None:
         samples = ar.samples_to_wire(r.frame.image)
+        publish_frame(self, r, index)
         for e in entries:
             s: ar.AcousticSettings = e.extra["acoustic"]
             st: dict[str, Any] = e.extra["client_state"]
             if e.owner is None:
                 if self._writer is not None:
-                    fields = self.frame_header(s, st, r, self.frames_recorded)
+                    fields = self.frame_header(s, st, r, self.counters["recorded"])
                     self._writer.write_frame(fields, r.frame.image)
-                    self.frames_recorded += 1
+                    self.counters["recorded"] += 1
                 continue
             client: Client = e.owner
             if client.closed or st.get("receiver") is None or self._udp is None:
@@ -323,8 +306,8 @@ class ArisDevice(Device):
                 except OSError as exc:
                     log.debug("%s: frame part not sent: %s", self.name, exc)
                     break
-                self.datagrams_sent += 1
-            self.frames_sent += 1
+                self.counters["datagrams"] += 1
+            self.counters["frames"] += 1
 
 
 def _buffered(transport: asyncio.DatagramTransport) -> int:

@@ -15,8 +15,9 @@ goes through here:
   scanning sonar's single beam) and :meth:`~DeviceContext.render` (a sonar frame
   rendered in the worker process);
 * lockstep: a device that is the simulation's clock master (ArduPilot's JSON
-  backend) calls :meth:`~DeviceContext.advance` per step it is asked for, after
-  declaring ``clock_master = True``;
+  backend) declares ``clock_master = True`` and awaits :meth:`~DeviceContext.advance`
+  per step it is asked for (the bridge then runs on a lockstep clock: simulated time
+  stands still between steps while every link keeps serving);
 * places: :meth:`~DeviceContext.pty_path`, :meth:`~DeviceContext.output_path`;
   shared links: :meth:`~DeviceContext.shared`;
 * observation: :meth:`~DeviceContext.publish` puts what a device served or received
@@ -89,6 +90,17 @@ class RenderFailed(RuntimeError):
     """The render worker could not produce a frame (it crashed or hung and is being restarted)."""
 
 
+class OptionError(ValueError):
+    """A device option the device refuses. ``option`` names the key, so the bridge can report the
+    scenario's file, line and ``[devices.<name>.<option>]``; ``message`` says what is wrong
+    (``str()`` puts ``context`` first, e.g. "device 'depth'", for use outside a scenario)."""
+
+    def __init__(self, option: str, message: str, context: str | None = None) -> None:
+        super().__init__(f"{context}: {message}" if context else message)
+        self.option = option
+        self.message = message
+
+
 class Periodic(Protocol):
     """A handle on periodic work registered with :meth:`DeviceContext.every`."""
 
@@ -139,17 +151,23 @@ class DeviceContext(Protocol):
         """For a periodic callback that must await: return ``ctx.defer(coro)``. In fast mode the
         clock waits for it; in real time it runs as a task and the tick returns at once."""
 
-    def advance(self, dt: float) -> None:
+    async def advance(self, dt: float) -> None:
         """Lockstep (only for a device with ``clock_master = True``): run the simulation ``dt`` [s]
-        forward now (physics, thrusters, every device's schedule), then return."""
+        forward now (physics, thrusters, every device's schedule); returns when that is done and
+        ``vehicle.state`` is the state at the new time."""
+
+    def reset_vehicle(self) -> None:
+        """Put the vehicle back at the scenario's start, at rest (a clock master that restarted)."""
 
     def sonar_profile(self, name: str) -> "SonarProfile":
         """Load a sonar profile by reference (``didson_hf``, ``sonars/oculus_m750d``)."""
 
     async def render(self, mount: str, profile: str, settings: "SonarSettings | None" = None, *,
-                     frame_index: int = 0) -> RenderedFrame:
+                     frame_index: int = 0, budget_s: float | None = None) -> RenderedFrame:
         """Render a sonar frame from the sensor mount ``mount`` at the current state, with the
-        sonar profile ``profile`` and ``settings``; raises :class:`RenderFailed`."""
+        sonar profile ``profile`` and ``settings``; raises :class:`RenderFailed`. ``budget_s`` [s]:
+        the frame's period; when frames would miss it the worker casts fewer elevation rays per
+        beam (the profile's ``adaptive_rays``), and ``RenderedFrame.rays`` says how many."""
 
     async def altitude(self) -> float:
         """[m] from the vehicle straight down to the first surface (inf if none)."""

@@ -19,61 +19,67 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint, RenderedFrame, RenderFailed
-from hilsim.links.tcp import Client, TcpServer
+from hilsim.devices.base import DeviceContext, Endpoint, Periodic, RenderedFrame, RenderFailed, TcpServerDevice
+from hilsim.devices.sonar_pinger import publish_frame
+from hilsim.links.tcp import Client
 from hilsim.protocols import ddf
+from hilsim.protocols.codec import drain
 from hilsim.protocols.ddf_commands import (BadCommand, CommandDecoder, Ping, SetGain, SetRate, SetWindow,
                                            command_text, encode_reply, pack_replies)
-from hilsim.protocols.ddf_commands import NEED_DATA as CMD_NEED_DATA
 
 log = logging.getLogger(__name__)
 
 MAX_PENDING_REPLIES = 16
 
 
-class DdfStreamDevice(Device):
+class DdfStreamDevice(TcpServerDevice):
     protocol = "ddf-stream"
+    needs_renderer = True
+    records = (".ddf",)
     OPTIONS = {
+        **TcpServerDevice.OPTIONS,
         "sensor": "sonar",          # the sensor mount whose pose pings
         "profile": None,            # sonar profile (default: the mount's)
-        "port": 0,                  # TCP port; 0 picks a free one
         "frame_rate_hz": None,      # default: the profile's
         "gain_db": 20,              # receiver gain [dB] 0..40 (fixed-gain mode)
-        "max_clients": 16,
         "idle_timeout_s": 0,        # drop a client with no traffic either way this long (0: never; a
                                     # stream client only listens, and the frames stop in a sonar dropout)
         "queue_frames": 2,          # per-client queue [frames]
         "serial_number": 1,
     }
+    COUNTERS = ("frames", "render_failures", "late_skips", "bad_commands")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        mount = ctx.scenario.sensor(str(self.options["sensor"]))
-        if mount.kind != "sonar":
-            raise ValueError(f"device {name!r}: sensor {mount.name!r} is a {mount.kind}, not a sonar")
-        self.mount = mount.name
-        self.profile_ref = str(self.options["profile"] or mount.profile)
-        self.profile = ctx.sonar_profile(self.profile_ref)
+        self.mount = self.sonar_mount()
+        self.profile_ref = str(self.options["profile"] or ctx.scenario.sensor(self.mount).profile)
+        try:
+            self.profile = ctx.sonar_profile(self.profile_ref)
+        except (KeyError, ValueError, OSError) as exc:
+            raise self.option_error("profile" if self.options["profile"] else "sensor",
+                                    str(exc.args[0] if exc.args else exc)) from None
         self.high_freq = self.profile.frequency >= 1.5e6
-        rate = self.options["frame_rate_hz"] or self.profile.frame_rate
-        if not (0.1 <= float(rate) <= 30.0):
-            raise ValueError(f"device {name!r}: frame_rate_hz {rate} outside 0.1..30")
-        self.rate = float(rate)
+        if self.options["frame_rate_hz"] is not None:
+            self.rate = self.option_number("frame_rate_hz", 0.1, 30.0)
+        else:
+            self.rate = float(self.profile.frame_rate)
         self.start_code, self.length_code = ddf.codes_for_window(
             self.profile.range_min, self.profile.range_max - self.profile.range_min, self.high_freq)
-        self.gain_db = int(self.options["gain_db"])
+        self.gain_db = self.option_int("gain_db", 0, 40)
+        self.option_int("queue_frames", 1, 1000)
         self.settings = self._settings()
-        self.server: TcpServer | None = None
         self.record_path: Path | None = None
         self._record: BinaryIO | None = None
-        self.frames_recorded = 0
         self.frame_number = 0
-        self.frames_rendered = 0
-        self.render_failures = 0
-        self.busy_skips = 0
-        self.bad_commands = 0
-        self._event: Any = None
+        self._event: Periodic | None = None
         self._rendering = False
+
+    def record_to(self, path: Path) -> None:
+        self.record_path = Path(path)
+
+    @property
+    def frames_recorded(self) -> int:
+        return self.counters["recorded"]
 
     # -- settings ----------------------------------------------------------------
 
@@ -98,13 +104,8 @@ class DdfStreamDevice(Device):
 
     async def start(self) -> list[Endpoint]:
         frame = ddf.FRAME_HEADER_SIZE + self.profile.n_beams * self.settings.n_samples
-        self.server = TcpServer(self.name, self.ctx.bind, int(self.options["port"]),
-                                max_clients=int(self.options["max_clients"]),
-                                idle_timeout=float(self.options["idle_timeout_s"]),
-                                queue_len=int(self.options["queue_frames"]),
-                                write_buffer=frame, sndbuf=2 * frame,
-                                on_connect=self._on_connect, on_data=self._on_data)
-        host, port = await self.server.start()
+        host, port = await self.serve(queue_len=int(self.options["queue_frames"]), write_buffer=frame,
+                                      sndbuf=2 * frame)
         try:  # warm the worker up (profile load, first allocations) so the first pings keep pace
             await self.ctx.render(self.mount, self.profile_ref, self.settings, frame_index=0)
         except RenderFailed as exc:
@@ -119,17 +120,10 @@ class DdfStreamDevice(Device):
 
     def _schedule(self) -> None:
         if self._event is not None:
-            self.ctx.scheduler.remove(self._event)
-        self._event = self.ctx.scheduler.add(f"{self.name}.ping", 1.0 / self.rate, self._ping, priority=20,
-                                             tolerance=0.5 / self.rate)
+            self._event.cancel()
+        self._event = self.every("ping", 1.0 / self.rate, self._ping, priority=20, tolerance=0.5 / self.rate)
 
-    async def close(self) -> None:
-        if self._event is not None:
-            self.ctx.scheduler.remove(self._event)
-            self._event = None
-        if self.server is not None:
-            await self.server.close()
-            self.server = None
+    async def on_close(self) -> None:
         if self._record is not None:
             f, self._record = self._record, None
             f.flush()
@@ -138,36 +132,24 @@ class DdfStreamDevice(Device):
             f.close()
             log.info("%s: recorded %d frames to %s", self.name, self.frames_recorded, self.record_path)
 
-    def status(self) -> dict[str, float]:
-        st = self.server.stats if self.server is not None else None
-        return {"clients": st.connected if st else 0, "frames": self.frames_rendered,
-                "sent": st.messages_sent if st else 0, "dropped": st.messages_dropped if st else 0,
-                "render_failures": self.render_failures, "late_skips": self.busy_skips,
-                "bad_commands": self.bad_commands}
-
     # -- clients -----------------------------------------------------------------
 
-    def _on_connect(self, client: Client) -> None:
+    def on_connect(self, client: Client) -> None:
         client.state["decoder"] = CommandDecoder()
         client.state["replies"] = deque()
-        assert self.server is not None
         self.server.send(client, ddf.encode_file_header(self.file_header()))
 
-    def _on_data(self, client: Client, data: bytes) -> None:
+    def on_data(self, client: Client, data: bytes) -> None:
         dec: CommandDecoder = client.state["decoder"]
-        dec.receive_data(data)
         replies: deque[bytes] = client.state["replies"]
-        while True:
-            ev = dec.next_event()
-            if ev is CMD_NEED_DATA:
-                break
+        for ev in drain(dec, data):
             ok, text = self._apply(ev)
             if len(replies) < MAX_PENDING_REPLIES:
                 replies.append(encode_reply(ok, text))
 
     def _apply(self, ev: Any) -> tuple[bool, str]:
         if isinstance(ev, BadCommand):
-            self.bad_commands += 1
+            self.counters["bad_commands"] += 1
             return False, ev.reason
         if isinstance(ev, SetRate):
             # re-adding the ping event moves its next tick to the next grid point: do it only
@@ -213,27 +195,28 @@ class DdfStreamDevice(Device):
             # the previous frame is still rendering: the sonar cannot ping this fast, so this
             # ping never happens (counted; the frame rate drops, the numbering has no gap).
             # A ping that was fired and then lost (worker crash) does leave a gap.
-            self.busy_skips += 1
+            self.counters["late_skips"] += 1
             return None
         self._rendering = True
-        return self.ctx.defer(self._render_and_send(self.frame_number))  # type: ignore[attr-defined]
+        return self.ctx.defer(self._render_and_send(self.frame_number))
 
     async def _render_and_send(self, number: int) -> None:
         self.frame_number = number + 1
         try:
             r = await self.ctx.render(self.mount, self.profile_ref, self.settings, frame_index=number)
         except RenderFailed as exc:
-            self.render_failures += 1
+            self.counters["render_failures"] += 1
             log.warning("%s: frame %d lost: %s", self.name, number, exc)
             return
         finally:
             self._rendering = False
-        self.frames_rendered += 1
+        self.counters["frames"] += 1
+        publish_frame(self, r, number)
         header = self._frame_header(number, r)
         plain = ddf.encode_frame(header, r.frame.image)
         if self._record is not None:
             self._record.write(plain)
-            self.frames_recorded += 1
+            self.counters["recorded"] += 1
         if self.server is None:
             return
         for c in list(self.server.clients.values()):

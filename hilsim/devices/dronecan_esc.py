@@ -20,12 +20,10 @@ default esc index i drives thruster i).
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from typing import Any
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import (acquire_bus, bus_location, check_can_options, mapping_text,
-                                       resolve_mapping, vehicle_thrusters)
-from hilsim.links.can import CanBus
+from hilsim.devices.base import CanDevice, DeviceContext, Endpoint
+from hilsim.devices.thruster_io import drive, mapping_text, resolve_mapping, vehicle_thrusters
 from hilsim.protocols import dronecan as dc
 from hilsim.protocols.can import CanFrame
 
@@ -34,81 +32,43 @@ log = logging.getLogger(__name__)
 NODE_STATUS_PRIORITY = 24
 
 
-class DroneCanEscDevice(Device):
+class DroneCanEscDevice(CanDevice):
     protocol = "dronecan"
     OPTIONS = {
+        **CanDevice.OPTIONS,
         "transport": "slcan",
-        "channel": "can0",
-        "port": 0,
-        "path": None,
-        "bitrate": 1_000_000,
         "node_id": 20,
         "priority": 16,
         "status_rate_hz": 20.0,
         "node_status_rate_hz": 1.0,
         "mapping": {},
-        "max_clients": 8,
     }
+    COUNTERS = ("commands", "status_transfers")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        check_can_options(name, self.options)
-        bus_location(ctx, self.options)  # a pty path that leaves the run folder fails here, with the scenario line
         self.thrusters = vehicle_thrusters(ctx, name)
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i,
                                        (0, dc.RAW_COMMAND_LEN_MAX - 1), "esc index")
-        self.node_id = int(self.options["node_id"])
-        if not 1 <= self.node_id <= 127:
-            raise ValueError(f"device {name!r}: node_id {self.node_id} outside 1..127")
-        self.priority = int(self.options["priority"])
-        if not 0 <= self.priority <= 31:
-            raise ValueError(f"device {name!r}: priority {self.priority} outside 0..31")
-        rates = {k: float(self.options[k]) for k in ("status_rate_hz", "node_status_rate_hz")}
-        for k, v in rates.items():
-            if not 0 < v <= 1000:
-                raise ValueError(f"device {name!r}: {k} {v} outside (0, 1000]")
-        self.rates = rates
+        self.node_id = self.option_int("node_id", 1, 127)
+        self.priority = self.option_int("priority", 0, 31)
+        self.rates = {k: self.option_number(k, 0.0, 1000.0, lo_open=True)
+                      for k in ("status_rate_hz", "node_status_rate_hz")}
         self.receiver = dc.TransferReceiver(signatures={dc.RAW_COMMAND_DTID: dc.RAW_COMMAND_SIGNATURE})
         self.transfer_ids = dc.TransferIds()
-        self.bus: CanBus | None = None
-        self.commands = 0
-        self.bad_transfers = 0
-        self.own_id_seen = 0
-        self.status_transfers = 0
-        self._unsubscribe: Callable[[], None] | None = None
-        self._events: list[Any] = []
 
     async def start(self) -> list[Endpoint]:
-        self.bus = await acquire_bus(self.ctx, self.name, self.options)
-        self._unsubscribe = self.bus.subscribe(self._on_frame)
-        sched = self.ctx.scheduler
-        self._events = [
-            sched.add(f"{self.name}.status", 1.0 / self.rates["status_rate_hz"], self._send_status, priority=20),
-            sched.add(f"{self.name}.node_status", 1.0 / self.rates["node_status_rate_hz"], self._send_node_status,
-                      priority=20),
-        ]
-        log.info("%s: DroneCAN node %d on %s %s, ESCs %s", self.name, self.node_id, self.bus.transport,
-                 self.bus.address, mapping_text(self.mapping, self.thrusters))
-        return [Endpoint(self.name, self.protocol, self.bus.transport, self.bus.address,
-                         {**self.bus.extra, "node_id": self.node_id, "esc_indexes": sorted(self.mapping)})]
-
-    async def close(self) -> None:
-        if self._unsubscribe is not None:
-            self._unsubscribe()
-            self._unsubscribe = None
-        for ev in self._events:
-            self.ctx.scheduler.remove(ev)
-        self._events = []
+        bus = await self.attach(self._on_frame)
+        self.every("status", 1.0 / self.rates["status_rate_hz"], self._send_status)
+        self.every("node_status", 1.0 / self.rates["node_status_rate_hz"], self._send_node_status)
+        log.info("%s: DroneCAN node %d on %s %s, ESCs %s", self.name, self.node_id, bus.transport,
+                 bus.address, mapping_text(self.mapping, self.thrusters))
+        return [self.endpoint(node_id=self.node_id, esc_indexes=sorted(self.mapping))]
 
     def status(self) -> dict[str, float]:
         st = self.receiver.stats
-        out = {"commands": float(self.commands), "status_transfers": float(self.status_transfers),
-               "bad_frames": float(st.bad_frames + st.crc_errors + st.too_long + self.bad_transfers)}
-        if self.bus is not None:
-            bs = self.bus.status()
-            out.update(clients=bs["clients"], frames_in=bs["frames_in"], dropped_in=bs["dropped_in"],
-                       dropped_out=bs["dropped_out"])
-        return out
+        bad = st.bad_frames + st.crc_errors + st.too_long + self.counters["bad_transfers"]
+        return {**super().status(), "bad_frames": float(bad)}
 
     def _on_frame(self, frame: CanFrame) -> None:
         now = self.ctx.now()
@@ -116,16 +76,16 @@ class DroneCanEscDevice(Device):
         if transfer is None or transfer.dtid != dc.RAW_COMMAND_DTID:
             return
         if transfer.source_node == self.node_id:
-            self.own_id_seen += 1  # another node uses our id: a configuration error on the bus
+            self.counters["own_id_seen"] += 1  # another node uses our id: a configuration error on the bus
         rc = dc.RawCommand.decode(transfer.payload)
         if rc is None:
-            self.bad_transfers += 1
+            self.counters["bad_transfers"] += 1
             return
         for esc, index in self.mapping.items():
             value = rc.normalized(esc)
             if value is not None:
-                self.thrusters.command(index, "normalized", value, now)
-        self.commands += 1
+                drive(self, index, "normalized", value, now)
+        self.counters["commands"] += 1
 
     def _send(self, message: dc.Message, priority: int) -> None:
         if self.bus is None:
@@ -142,7 +102,7 @@ class DroneCanEscDevice(Device):
             self._send(dc.EscStatus(error_count=0, voltage=tel.voltage, current=tel.input_current,
                                     temperature=tel.temperature, rpm=round(tel.rpm),
                                     power_rating_pct=round(abs(tel.duty) * 100), esc_index=esc), self.priority)
-            self.status_transfers += 1
+            self.counters["status_transfers"] += 1
 
     def _send_node_status(self, t: float) -> None:
         self._send(dc.NodeStatus(uptime_sec=int(max(0.0, t))), NODE_STATUS_PRIORITY)

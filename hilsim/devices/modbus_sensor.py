@@ -35,7 +35,7 @@ import math
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint
+from hilsim.devices.base import Device, DeviceContext, Endpoint, OptionError
 from hilsim.links.modbus import ModbusRtuServer, ModbusTarget, ModbusTcpServer, WriteAction
 from hilsim.protocols.registers import DEVICE_FAILURE, ModbusError, Register, RegisterImage, RegisterMap, load_map
 from hilsim.resources import data_path, find_profile
@@ -108,29 +108,39 @@ class ModbusSensorDevice(Device):
         self.transports = (transport,) if isinstance(transport, str) else tuple(transport)
         bad = [t for t in self.transports if t not in TRANSPORTS]
         if bad or not self.transports:
-            raise ValueError(f"device {name!r}: transport must be a list of {TRANSPORTS}, got {transport!r}")
+            raise self.option_error("transport", f"transport must be a list of {TRANSPORTS}, got {transport!r}")
         if str(o["parity"]).upper() not in ("N", "E", "O"):
-            raise ValueError(f"device {name!r}: parity must be \"N\", \"E\" or \"O\", got {o['parity']!r}")
-        if not (isinstance(o["baudrate"], int) and o["baudrate"] > 0):
-            raise ValueError(f"device {name!r}: baudrate must be a positive integer, got {o['baudrate']!r}")
-        if not (isinstance(o["device_id"], int) and 0 <= o["device_id"] <= 247):
-            raise ValueError(f"device {name!r}: device_id must be 1..247 (0: the map's), got {o['device_id']!r}")
+            raise self.option_error("parity", f"parity must be \"N\", \"E\" or \"O\", got {o['parity']!r}")
+        self.option_int("baudrate", 1)
+        self.option_int("stop_bits", 1, 2)
+        self.option_int("device_id", 0, 247)
+        self.option_int("port", 0, 65535)
+        self.option_int("max_clients", 1, 10_000)
+        self.option_number("max_client_rate", 0.0)
+        self.option_number("idle_timeout_s", 0.0)
+        self.option_number("rate", 0.0)
         if o["path"]:  # a path that leaves the run folder fails here, with the scenario line, not at start
             self.option_pty_path("path", "")
         scenario = getattr(ctx, "scenario", None)
         self._base: Path | None = scenario.folder if scenario is not None else None
-        self.map: RegisterMap = load_map(find_map(str(o["map"] or self.DEFAULT_MAP), self._base))
+        try:
+            self.map: RegisterMap = load_map(find_map(str(o["map"] or self.DEFAULT_MAP), self._base))
+        except (ValueError, OSError) as exc:
+            raise self.option_error("map", str(exc)) from None
         unknown = self.map.sources - self.SIGNALS
         if unknown:
-            raise ValueError(f"device {name!r}: map {self.map.name!r} shows signals {sorted(unknown)} that a "
-                             f"{self.protocol} device does not have (it has {', '.join(sorted(self.SIGNALS))})")
+            raise self.option_error("map", f"map {self.map.name!r} shows signals {sorted(unknown)} that a "
+                                    f"{self.protocol} device does not have (it has {', '.join(sorted(self.SIGNALS))})")
         self.image = RegisterImage(self.map)
-        self.sensor: Sensor[Any] = self.make_sensor()
+        try:
+            self.sensor: Sensor[Any] = self.make_sensor()
+        except (ValueError, KeyError, OSError) as exc:
+            if isinstance(exc, OptionError):
+                raise
+            raise self.option_error("sensor", str(exc.args[0] if exc.args else exc)) from None
         self.target = ModbusTarget(self.image, o["device_id"] or None, actions=self.actions(), name=name)
         self.tcp: ModbusTcpServer | None = None
         self.rtu: ModbusRtuServer | None = None
-        self._own_rtu = False
-        self._event: Any = None
         self.samples = 0
         self.last_reading: Any = None
 
@@ -154,7 +164,7 @@ class ModbusSensorDevice(Device):
     def _rate(self, profile_rate: float) -> float:
         rate = float(self.options["rate"] or profile_rate)
         if not rate > 0:
-            raise ValueError(f"device {self.name!r}: rate must be > 0 Hz, got {rate}")
+            raise self.option_error("rate", f"rate must be > 0 Hz, got {rate}")
         return rate
 
     # -- fault injection ---------------------------------------------------------
@@ -198,19 +208,27 @@ class ModbusSensorDevice(Device):
         state = self.ctx.vehicle.state
         reading = self.sensor.sample(state)
         self.last_reading = reading
-        self.image.update(self.signals(reading), state.time)
+        signals = self.signals(reading)
+        self.image.update(signals, state.time)
         self.samples += 1
+        if self.observed("reading"):
+            self.publish("reading", {"t": float(state.time), **self.reading_fields(signals)})
+
+    def reading_fields(self, signals: Mapping[str, float]) -> dict[str, Any]:
+        """The served reading for observers: the signals, named with their units."""
+        return dict(signals)
 
     async def start(self) -> list[Endpoint]:
         o = self.options
         endpoints: list[Endpoint] = []
         self.sample()
-        self._event = self.ctx.scheduler.add(self.name, self.sensor.period, self.sample, priority=10)
+        self.every("sample", self.sensor.period, self.sample, priority=10)
         extra = {"device_id": self.target.device_id, "map": self.map.name}
         if "tcp" in self.transports:
-            self.tcp = ModbusTcpServer(self.name, self.target, self.ctx.bind, int(o["port"]),
-                                       max_clients=int(o["max_clients"]), max_rate=float(o["max_client_rate"]),
-                                       idle_timeout=float(o["idle_timeout_s"]) or None)
+            self.tcp = self.own(ModbusTcpServer(self.name, self.target, self.ctx.bind, int(o["port"]),
+                                                max_clients=int(o["max_clients"]),
+                                                max_rate=float(o["max_client_rate"]),
+                                                idle_timeout=float(o["idle_timeout_s"]) or None))
             host, port = await self.tcp.start()
             endpoints.append(Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}", extra))
         if "rtu" in self.transports:
@@ -218,6 +236,7 @@ class ModbusSensorDevice(Device):
                       "stop_bits": int(o["stop_bits"])}
             await self._start_rtu(serial)
             assert self.rtu is not None
+            self.use(self.rtu.link)  # its line's faults (bit errors)
             endpoints.append(Endpoint(self.name, self.protocol, "pty", self.rtu.path,
                                       {**serial, **extra, "framing": "rtu"}))
         return endpoints
@@ -225,9 +244,8 @@ class ModbusSensorDevice(Device):
     async def _start_rtu(self, serial: dict[str, Any]) -> None:
         path = str(self.options["path"])
         if not path:  # a line of its own
-            self.rtu = ModbusRtuServer(self.name, self.ctx.pty_path(None, f"{self.name}.tty"), [self.target],
-                                       **serial)
-            self._own_rtu = True
+            self.rtu = self.own(ModbusRtuServer(self.name, self.ctx.pty_path(None, f"{self.name}.tty"),
+                                                [self.target], **serial))
             await self.rtu.start()
             return
         # an explicit path: devices naming the same one share the line (an RS-485 bus)
@@ -238,29 +256,12 @@ class ModbusSensorDevice(Device):
             await srv.start()
             return srv
 
-        shared = getattr(self.ctx, "shared", None)
-        if shared is None:
-            self.rtu = await factory()
-            self._own_rtu = True
-        else:
-            self.rtu = await shared(("modbus-rtu", str(full)), factory)
-        line = {"baudrate": self.rtu.baudrate, "parity": self.rtu.link.parity, "stop_bits": self.rtu.link.stop_bits}
+        self.rtu = rtu = await self.ctx.shared(("modbus-rtu", str(full)), factory)
+        line = {"baudrate": rtu.baudrate, "parity": rtu.link.parity, "stop_bits": rtu.link.stop_bits}
         if line != serial:
-            raise ValueError(f"device {self.name!r}: RTU line {full} is already open with {line}, not {serial}")
-        self.rtu.attach(self.target)
-
-    async def close(self) -> None:
-        if self._event is not None:
-            self.ctx.scheduler.remove(self._event)
-            self._event = None
-        if self.tcp is not None:
-            await self.tcp.close()
-            self.tcp = None
-        if self.rtu is not None:
-            self.rtu.detach(self.target)
-            if self._own_rtu:
-                await self.rtu.close()
-            self.rtu = None
+            raise self.option_error("path", f"RTU line {full} is already open with {line}, not {serial}")
+        rtu.attach(self.target)
+        self.own(_Detach(rtu, self.target))
 
     def status(self) -> dict[str, float]:
         s = self.target.stats
@@ -276,7 +277,17 @@ class ModbusSensorDevice(Device):
             out["rtu_ignored"] = self.rtu.stats.ignored
         if s.internal_errors:
             out["internal_errors"] = s.internal_errors
-        return out
+        return {**out, **super().status()}
+
+
+class _Detach:
+    """A device's place on a shared RTU line, as an owned link: closing it detaches the device."""
+
+    def __init__(self, rtu: ModbusRtuServer, target: ModbusTarget) -> None:
+        self.rtu, self.target = rtu, target
+
+    def close(self) -> None:
+        self.rtu.detach(self.target)
 
 
 class KellerDevice(ModbusSensorDevice):
@@ -300,8 +311,11 @@ class KellerDevice(ModbusSensorDevice):
         mount: tuple[float, ...] = (0.0, 0.0, 0.0)
         if self.options["mount"]:
             if scenario is None:
-                raise ValueError(f"device {self.name!r}: mount {self.options['mount']!r} needs a scenario")
-            mount = tuple(float(x) for x in scenario.sensor(str(self.options["mount"])).mount.position)
+                raise self.option_error("mount", f"mount {self.options['mount']!r} needs a scenario")
+            try:
+                mount = tuple(float(x) for x in scenario.sensor(str(self.options["mount"])).mount.position)
+            except KeyError as exc:
+                raise self.option_error("mount", str(exc.args[0])) from None
         return PressureSensor(profile, seed=self.ctx.seed, name=self.name, water_density=density, mount=mount)
 
     def signals(self, reading: PressureReading) -> dict[str, float]:
@@ -312,6 +326,9 @@ class KellerDevice(ModbusSensorDevice):
 
     def actions(self) -> dict[str, WriteAction]:
         return {"set_zero": self._set_zero}
+
+    def reading_fields(self, signals: Mapping[str, float]) -> dict[str, float]:
+        return {"pressure_bar": signals["pressure"] / 1e5, "temperature_c": signals["temperature"] - 273.15}
 
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
         """A Keller shows a failed pressure channel as NaN (its documented channel error)."""
@@ -357,6 +374,12 @@ class WitMotionDevice(ModbusSensorDevice):
 
     def signals(self, reading: ImuReading) -> dict[str, float]:
         return imu_signals(reading)
+
+    def reading_fields(self, signals: Mapping[str, float]) -> dict[str, Any]:
+        return {"rpy_deg": [math.degrees(signals[f"attitude.{a}"]) for a in ("roll", "pitch", "yaw")],
+                "accel_m_s2": [signals[f"specific_force.{a}"] for a in "xyz"],
+                "gyro_deg_s": [math.degrees(signals[f"angular_velocity.{a}"]) for a in "xyz"],
+                "temperature_c": signals["temperature"] - 273.15}
 
 
 __all__ = ["KellerDevice", "ModbusSensorDevice", "WitMotionDevice", "find_map", "imu_signals", "pressure_signals"]

@@ -27,10 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint, RenderedFrame
-from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, open_udp, serve_vendor_port
-from hilsim.links.tcp import Client, TcpServer
+from hilsim.devices.base import DeviceContext, Endpoint, RenderedFrame, TcpServerDevice
+from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, publish_frame
+from hilsim.links.tcp import Client
+from hilsim.links.udp import open_udp
 from hilsim.protocols import oculus as oc
+from hilsim.protocols.codec import drain
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +46,11 @@ def gain_db_from_percent(percent: float) -> float:
     return 20.0 * math.log10(min(max(percent, 1.0), 100.0) / 100.0)
 
 
-class OculusDevice(Device):
+class OculusDevice(TcpServerDevice):
     protocol = "oculus"
+    needs_renderer = True
     OPTIONS = {
+        **TcpServerDevice.OPTIONS,
         "sensor": "sonar",                  # the sensor mount whose pose pings
         "profile_lf": "oculus_m750d",       # masterMode 1
         "profile_hf": "oculus_m750d_hf",    # masterMode 2
@@ -62,71 +66,49 @@ class OculusDevice(Device):
         "queue_frames": 2,                  # per-client queue [pings]
     }
 
+    COUNTERS = ("pings", "fires", "bad_messages", "junk_bytes")
+
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        mount = ctx.scenario.sensor(str(self.options["sensor"]))
-        if mount.kind != "sonar":
-            raise ValueError(f"device {name!r}: sensor {mount.name!r} is a {mount.kind}, not a sonar")
-        self.mount = mount.name
+        self.mount = self.sonar_mount()
         self.profile_refs = {oc.MODE_LF: str(self.options["profile_lf"]), oc.MODE_HF: str(self.options["profile_hf"])}
-        self.profiles = {m: ctx.sonar_profile(ref) for m, ref in self.profile_refs.items()}
-        self.max_rows = int(self.options["max_rows"])
-        if not 16 <= self.max_rows <= 8192:
-            raise ValueError(f"device {name!r}: max_rows {self.max_rows} outside 16..8192")
-        for opt in ("port", "status_port"):
-            if not 0 <= int(self.options[opt]) <= 65535:
-                raise ValueError(f"device {name!r}: {opt} {self.options[opt]} is not a port")
-        self.server: TcpServer | None = None
+        self.profiles = {}
+        for m, ref in self.profile_refs.items():
+            try:
+                self.profiles[m] = ctx.sonar_profile(ref)
+            except (KeyError, ValueError, OSError) as exc:
+                raise self.option_error("profile_lf" if m == oc.MODE_LF else "profile_hf",
+                                        str(exc.args[0] if exc.args else exc)) from None
+        self.max_rows = self.option_int("max_rows", 16, 8192)
+        self.option_int("status_port", 0, 65535)
+        self.option_number("status_interval_s", 0.0, 60.0, lo_open=True)
+        self.option_int("device_id", 0, 255)
         self.pinger = ClientPinger(ctx, name, self.mount, self._send_pings)
         self._udp: asyncio.DatagramTransport | None = None
-        self._status_event: Any = None
         self.status_ip = "127.0.0.1"
-        self.pings_sent = 0
-        self.fires = 0
-        self.bad_messages = 0
-        self.junk_bytes = 0
         self.status_sent = 0
 
     # -- lifecycle -----------------------------------------------------------------
 
     async def start(self) -> list[Endpoint]:
         frame = oc.PING_V2_SIZE + 4 * 512 * (self.max_rows + 1)
-        self.server, host, port = await serve_vendor_port(self.name, lambda p: self._server(p, frame),
-                                                          int(self.options["port"]))
+        host, port = await self.serve(vendor_port=True, queue_len=int(self.options["queue_frames"]),
+                                      write_buffer=frame, sndbuf=2 * frame)
         self.status_ip = str(self.options["status_ip"] or (host if host not in ("0.0.0.0", "") else "127.0.0.1"))
-        self._udp = await open_udp(self.ctx.bind)
+        self._udp = self.own(await open_udp(self.ctx.bind))
         interval = float(self.options["status_interval_s"])
         self._send_status(0.0)
-        self._status_event = self.ctx.scheduler.add(f"{self.name}.status", interval, self._send_status,
-                                                    priority=30, tolerance=interval)
+        self.every("status", interval, self._send_status, priority=30, tolerance=interval)
         return [Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}",
                          {"status": f"udp {self.ctx.broadcast}:{self.options['status_port']}",
                           "beams": 512, "modes": "LF,HF"})]
 
-    def _server(self, port: int, frame: int) -> TcpServer:
-        return TcpServer(self.name, self.ctx.bind, port, max_clients=int(self.options["max_clients"]),
-                         idle_timeout=float(self.options["idle_timeout_s"]),
-                         queue_len=int(self.options["queue_frames"]), write_buffer=frame, sndbuf=2 * frame,
-                         on_connect=self._on_connect, on_data=self._on_data, on_disconnect=self._on_disconnect)
-
-    async def close(self) -> None:
-        if self._status_event is not None:
-            self.ctx.scheduler.remove(self._status_event)
-            self._status_event = None
+    async def on_close(self) -> None:
         await self.pinger.close()
-        if self.server is not None:
-            await self.server.close()
-            self.server = None
-        if self._udp is not None:
-            self._udp.close()
-            self._udp = None
 
     def status(self) -> dict[str, float]:
-        st = self.server.stats if self.server is not None else None
-        return {"clients": st.connected if st else 0, "pings": self.pings_sent, "renders": self.pinger.renders,
-                "dropped": st.messages_dropped if st else 0, "busy_skips": self.pinger.busy_skips,
-                "render_failures": self.pinger.failures, "fires": self.fires,
-                "bad_messages": self.bad_messages, "junk_bytes": self.junk_bytes}
+        return {**super().status(), "renders": float(self.pinger.renders), "busy_skips": float(self.pinger.busy_skips),
+                "render_failures": float(self.pinger.failures)}
 
     # -- status datagram ---------------------------------------------------------------
 
@@ -159,32 +141,28 @@ class OculusDevice(Device):
 
     # -- TCP clients ---------------------------------------------------------------------
 
-    def _on_connect(self, client: Client) -> None:
+    def on_connect(self, client: Client) -> None:
         client.state["reader"] = oc.OculusReader(oc.MAX_SERVER_PAYLOAD)
 
-    def _on_disconnect(self, client: Client) -> None:
+    def on_disconnect(self, client: Client) -> None:
         self.pinger.set(client.id, None)
 
-    def _on_data(self, client: Client, data: bytes) -> None:
+    def on_data(self, client: Client, data: bytes) -> None:
         reader: oc.OculusReader = client.state["reader"]
-        reader.receive_data(data)
-        for _ in range(10_000):  # bounded: at most a few thousand events per read
-            ev = reader.next_event()
-            if ev is oc.NEED_DATA:
-                break
+        for ev in drain(reader, data, limit=10_000):  # bounded: at most a few thousand events per read
             if isinstance(ev, oc.Fire):
                 self._fire(client, ev)
             elif isinstance(ev, oc.Junk):
-                self.junk_bytes += ev.n_bytes
+                self.counters["junk_bytes"] += ev.n_bytes
             elif isinstance(ev, (oc.BadMessage, oc.Oversize)):
-                self.bad_messages += 1
+                self.counters["bad_messages"] += 1
                 log.debug("%s: %s sent a bad message: %s", self.name, client, ev)
             # dummy keep-alives and other messages: nothing to do
 
     def _fire(self, client: Client, fire: oc.Fire) -> None:
-        self.fires += 1
+        self.counters["fires"] += 1
         if fire.master_mode not in self.profiles:
-            self.bad_messages += 1
+            self.counters["bad_messages"] += 1
             log.debug("%s: %s fired master mode %d (only 1 and 2 exist)", self.name, client, fire.master_mode)
             return
         if fire.ping_rate == oc.PING_RATE_STANDBY:
@@ -210,6 +188,7 @@ class OculusDevice(Device):
     def _send_pings(self, entries: list[PingEntry], r: RenderedFrame, index: int) -> None:
         if self.server is None:
             return
+        publish_frame(self, r, index)
         cache: dict[oc.Fire, bytes] = {}  # clients that fired the same get the same bytes
         for e in entries:
             fire: oc.Fire = e.extra["fire"]
@@ -218,7 +197,7 @@ class OculusDevice(Device):
                 msg = cache[fire] = oc.encode_ping_result(self.ping_result(fire, e.extra["mode"], r, index))
             client: Client = e.owner
             if not client.closed and self.server.send(client, msg):
-                self.pings_sent += 1
+                self.counters["pings"] += 1
 
     def ping_result(self, fire: oc.Fire, mode: int, r: RenderedFrame, index: int) -> oc.PingResult:
         """The SimplePingResult answering ``fire`` with the rendered frame ``r``."""

@@ -19,42 +19,14 @@ lost that way are counted in ``busy_skips``.
 
 from __future__ import annotations
 
-import asyncio
-import errno
 import logging
 from dataclasses import dataclass, field
 from typing import Any, Awaitable, Callable, Hashable
 
-from hilsim.devices.base import DeviceContext, RenderedFrame, RenderFailed
-from hilsim.links.tcp import TcpServer
+from hilsim.devices.base import DeviceContext, Periodic, RenderedFrame, RenderFailed
 from hilsim.sim.sonar_profile import SonarSettings
 
 log = logging.getLogger(__name__)
-
-
-async def serve_vendor_port(name: str, make: Callable[[int], TcpServer], port: int
-                            ) -> tuple[TcpServer, str, int]:
-    """Start ``make(port)``; a vendor sonar's fixed port that is taken (another bridge, the real
-    sonar's software) falls back to a free port with a warning, as the endpoints then show.
-    Returns the server and its bound host and port."""
-    server = make(port)
-    try:
-        host, bound = await server.start()
-    except OSError as exc:
-        if exc.errno != errno.EADDRINUSE or port == 0:
-            raise
-        log.warning("%s: TCP port %d is taken; serving on a free port instead (clients that only try %d "
-                    "will not find it)", name, port, port)
-        server = make(0)
-        host, bound = await server.start()
-    return server, host, bound
-
-
-async def open_udp(bind: str) -> asyncio.DatagramTransport:
-    """A UDP socket on ``bind`` (any port) for a sonar's status or beacon datagrams."""
-    transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
-        asyncio.DatagramProtocol, local_addr=(bind, 0), allow_broadcast=True)
-    return transport
 
 
 @dataclass
@@ -92,9 +64,8 @@ class ClientPinger:
         self.on_frame = on_frame
         self.tick = 1.0 / tick_hz
         self.entries: dict[int, PingEntry] = {}
-        self._event: Any = None
+        self._event: Periodic | None = None
         self._busy = False
-        self._tasks: set[asyncio.Future[Any]] = set()
         self.frame_index = 0
         self.renders = 0
         self.busy_skips = 0
@@ -113,19 +84,16 @@ class ClientPinger:
 
     def _update_event(self) -> None:
         if self.entries and self._event is None:
-            self._event = self.ctx.scheduler.add(f"{self.name}.ping", self.tick, self._on_tick, priority=20,
-                                                 tolerance=self.tick)
+            self._event = self.ctx.every(f"{self.name}.ping", self.tick, self._on_tick, priority=20,
+                                         tolerance=self.tick)
         elif not self.entries and self._event is not None:
-            self.ctx.scheduler.remove(self._event)
+            self._event.cancel()
             self._event = None
 
     async def close(self) -> None:
+        """Stop pinging (a render in flight finds its entries gone and sends nothing)."""
         self.entries.clear()
         self._update_event()
-        for t in list(self._tasks):
-            t.cancel()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
 
     def _on_tick(self, t: float) -> Awaitable[Any] | None:
         if self._busy:
@@ -134,14 +102,7 @@ class ClientPinger:
         if not batch:
             return None
         self._busy = True
-        coro = self._render_batches(batch)
-        defer = getattr(self.ctx, "defer", None)
-        if defer is not None:
-            return defer(coro)
-        task = asyncio.ensure_future(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-        return None
+        return self.ctx.defer(self._render_batches(batch))
 
     def _take_due(self, t: float) -> list[list[PingEntry]]:
         """The entries due at ``t`` [s], grouped by render key, with the entries of the same key due within
@@ -193,3 +154,15 @@ class ClientPinger:
         live = [e for e in group if self.entries.get(e.cid) is e]
         if live:
             self.on_frame(live, r, index)
+
+
+def publish_frame(device: Any, r: RenderedFrame, index: int) -> None:
+    """Publish a frame a sonar device served on its ``sonar`` topic (once per render, whatever the
+    number of clients it went to), for the console and recorders."""
+    if not device.observed("sonar"):
+        return
+    f = r.frame
+    device.publish("sonar", {"t": float(r.state.time), "image": f.image, "range_min": float(f.range_min),
+                             "range_max": float(f.range_max), "azimuths": f.azimuths,
+                             "gain_db": float(f.settings.gain_db), "frame_index": int(index),
+                             "rays": int(r.rays)})

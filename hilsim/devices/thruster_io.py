@@ -1,5 +1,6 @@
 """What the thruster devices (VESC CAN/UART, DroneCAN, VRCSR) share: the id -> thruster
-mapping from the scenario, the CAN bus they attach to, and the ESC's running counters.
+mapping from the scenario, commanding a thruster (published for observers), and the ESC's
+running counters.
 """
 
 from __future__ import annotations
@@ -7,19 +8,17 @@ from __future__ import annotations
 import math
 from typing import Any, Callable, Mapping
 
-from hilsim.devices.base import DeviceContext, OptionError
-from hilsim.links.can import CanBus, bus_class
+from hilsim.devices.context import DeviceContext, OptionError
 from hilsim.sim.thrusters import ThrusterSet, ThrusterTelemetry
 
 KELVIN = 273.15
-CAN_TRANSPORTS = ("socketcand", "slcan", "socketcan", "virtual")
 
 
 def vehicle_thrusters(ctx: DeviceContext, device: str) -> ThrusterSet:
-    """The vehicle's thruster set; ValueError if the vehicle has none."""
+    """The vehicle's thruster set; OptionError ("protocol") if the vehicle has none."""
     t = ctx.vehicle.thrusters
     if t is None:
-        raise ValueError(f"device {device!r}: the scenario's vehicle has no thrusters to drive")
+        raise OptionError("protocol", f"device {device!r}: the scenario's vehicle has no thrusters to drive")
     return t
 
 
@@ -32,85 +31,43 @@ def resolve_mapping(device: str, option: Any, thrusters: ThrusterSet, default: C
         out = {default(i): i for i in range(len(thrusters))}
     else:
         if not isinstance(option, Mapping):
-            raise ValueError(f"device {device!r}: mapping must be a table {{{what} = thruster}}, got {option!r}")
+            raise OptionError("mapping", f"device {device!r}: mapping must be a table {{{what} = thruster}}, got {option!r}")
         out = {}
         for key, target in option.items():
             try:
                 ident = int(key)
             except (TypeError, ValueError):
-                raise ValueError(f"device {device!r}: mapping key {key!r} is not a {what}") from None
+                raise OptionError("mapping", f"device {device!r}: mapping key {key!r} is not a {what}") from None
             if isinstance(target, bool) or not isinstance(target, (int, str)):
-                raise ValueError(f"device {device!r}: mapping {key} -> {target!r}: give a thruster name or index")
+                raise OptionError("mapping", f"device {device!r}: mapping {key} -> {target!r}: give a thruster name or index")
             if isinstance(target, str):
                 try:
                     index = thrusters.index(target)
                 except KeyError as exc:
-                    raise ValueError(f"device {device!r}: mapping {key}: {exc.args[0]}") from None
+                    raise OptionError("mapping", f"device {device!r}: mapping {key}: {exc.args[0]}") from None
             else:
                 index = target
                 if not 0 <= index < len(thrusters):
-                    raise ValueError(f"device {device!r}: mapping {key} -> thruster index {index} out of range "
+                    raise OptionError("mapping", f"device {device!r}: mapping {key} -> thruster index {index} out of range "
                                      f"0..{len(thrusters) - 1}")
             out[ident] = index
     for ident in out:
         if not lo <= ident <= hi:
-            raise ValueError(f"device {device!r}: {what} {ident} out of range {lo}..{hi}")
+            raise OptionError("mapping", f"device {device!r}: {what} {ident} out of range {lo}..{hi}")
     return out
+
+
+def drive(device: Any, index: int, kind: str, value: float, now: float) -> None:
+    """Command thruster ``index`` of ``device.thrusters`` (``kind``: duty, current, erpm, normalized ...)
+    and publish it on the device's ``command`` topic for the console and recorders."""
+    device.thrusters.command(index, kind, value, now)
+    if device.observed("command"):
+        device.publish("command", {"t": now, "thruster": index, "name": device.thrusters.names[index],
+                                   "kind": kind, "value": float(value), "source": device.name})
 
 
 def mapping_text(mapping: Mapping[int, int], thrusters: ThrusterSet) -> str:
     return ", ".join(f"{k}->{thrusters.names[v]}" for k, v in sorted(mapping.items()))
-
-
-def check_can_options(device: str, options: Mapping[str, Any]) -> None:
-    """ValueError for a CAN device's transport options that cannot work (at construction time)."""
-    transport = options["transport"]
-    if transport not in CAN_TRANSPORTS:
-        raise ValueError(f"device {device!r}: transport {transport!r} is not one of {', '.join(CAN_TRANSPORTS)}")
-    if not isinstance(options["channel"], str) or not options["channel"]:
-        raise ValueError(f"device {device!r}: channel must be a bus name such as 'can0'")
-    if transport == "socketcand" and not (isinstance(options["port"], int) and 0 <= options["port"] <= 65535):
-        raise ValueError(f"device {device!r}: port {options['port']!r} outside 0..65535")
-    bitrate = options.get("bitrate")
-    if bitrate is not None and not (isinstance(bitrate, int) and bitrate > 0):
-        raise ValueError(f"device {device!r}: bitrate must be a positive number of bit/s, got {bitrate!r}")
-
-
-def bus_location(ctx: DeviceContext, options: Mapping[str, Any]) -> Any:
-    """What tells one bus of a transport from another: the socketcand port, the slcan pty path
-    (inside the run folder; OptionError "path" for one that leaves it), the interface name."""
-    transport = str(options["transport"])
-    channel = str(options["channel"])
-    if transport == "socketcand":
-        return int(options["port"])
-    if transport == "slcan":
-        try:
-            return str(ctx.pty_path(options["path"], f"slcan-{channel}"))
-        except (TypeError, ValueError) as exc:
-            raise OptionError("path", str(exc)) from None
-    return channel
-
-
-async def acquire_bus(ctx: DeviceContext, device: str, options: Mapping[str, Any]) -> CanBus:
-    """The CAN bus named by the device's options, shared with every device naming the same
-    (transport, channel, port or path)."""
-    check_can_options(device, options)
-    transport = str(options["transport"])
-    channel = str(options["channel"])
-    bitrate = int(options["bitrate"]) if options.get("bitrate") else None
-    where = bus_location(ctx, options)
-    kw: dict[str, Any] = {"channel": channel}
-    if transport == "socketcand":
-        kw.update(host=ctx.bind, port=where, bitrate=bitrate, max_clients=int(options["max_clients"]))
-    elif transport == "slcan":
-        kw.update(path=where, bitrate=bitrate)
-    cls = bus_class(transport)
-
-    async def make() -> CanBus:
-        bus = cls(f"{transport}:{channel}", **kw)
-        await bus.start()
-        return bus
-    return await ctx.shared(("can", transport, channel, where), make)
 
 
 class EscCounters:

@@ -25,76 +25,39 @@ max_clients (socketcand).
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from typing import Any
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import (EscCounters, acquire_bus, bus_location, celsius, check_can_options,
-                                       mapping_text, resolve_mapping, vehicle_thrusters)
-from hilsim.links.can import CanBus
+from hilsim.devices.base import CanDevice, DeviceContext, Endpoint
+from hilsim.devices.thruster_io import EscCounters, celsius, drive, mapping_text, resolve_mapping, vehicle_thrusters
 from hilsim.protocols import vesc_can as vc
 from hilsim.protocols.can import CanFrame
 
 log = logging.getLogger(__name__)
 
 
-class VescCanDevice(Device):
+class VescCanDevice(CanDevice):
     protocol = "vesc-can"
     OPTIONS = {
-        "transport": "socketcand",
-        "channel": "can0",
-        "port": 0,
-        "path": None,
-        "bitrate": 1_000_000,
+        **CanDevice.OPTIONS,
         "status_rate_hz": 50.0,
         "mapping": {},
-        "max_clients": 8,
     }
+    COUNTERS = ("commands", "bad_frames", "status_frames")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        check_can_options(name, self.options)
-        bus_location(ctx, self.options)  # a pty path that leaves the run folder fails here, with the scenario line
         self.thrusters = vehicle_thrusters(ctx, name)
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i + 1, (0, 255),
                                        "controller id")
-        rate = float(self.options["status_rate_hz"])
-        if not 0 < rate <= 1000:
-            raise ValueError(f"device {name!r}: status_rate_hz {rate} outside (0, 1000]")
-        self.period = 1.0 / rate
-        self.bus: CanBus | None = None
-        self.counters = {cid: EscCounters() for cid in self.mapping}
-        self.commands = 0
-        self.bad_frames = 0
-        self.other_ids = 0
-        self.status_frames = 0
-        self._unsubscribe: Callable[[], None] | None = None
-        self._event: Any = None
+        self.period = 1.0 / self.option_number("status_rate_hz", 0.0, 1000.0, lo_open=True)
+        self.esc_counters = {cid: EscCounters() for cid in self.mapping}
 
     async def start(self) -> list[Endpoint]:
-        self.bus = await acquire_bus(self.ctx, self.name, self.options)
-        self._unsubscribe = self.bus.subscribe(self._on_frame)
-        self._event = self.ctx.scheduler.add(f"{self.name}.status", self.period, self._send_status, priority=20)
-        log.info("%s: VESC CAN on %s %s, controllers %s", self.name, self.bus.transport, self.bus.address,
+        bus = await self.attach(self._on_frame)
+        self.every("status", self.period, self._send_status)
+        log.info("%s: VESC CAN on %s %s, controllers %s", self.name, bus.transport, bus.address,
                  mapping_text(self.mapping, self.thrusters))
-        return [Endpoint(self.name, self.protocol, self.bus.transport, self.bus.address,
-                         {**self.bus.extra, "controller_ids": sorted(self.mapping)})]
-
-    async def close(self) -> None:
-        if self._unsubscribe is not None:
-            self._unsubscribe()
-            self._unsubscribe = None
-        if self._event is not None:
-            self.ctx.scheduler.remove(self._event)
-            self._event = None
-
-    def status(self) -> dict[str, float]:
-        out = {"commands": float(self.commands), "bad_frames": float(self.bad_frames),
-               "status_frames": float(self.status_frames)}
-        if self.bus is not None:
-            bs = self.bus.status()
-            out.update(clients=bs["clients"], frames_in=bs["frames_in"], dropped_in=bs["dropped_in"],
-                       dropped_out=bs["dropped_out"])
-        return out
+        return [self.endpoint(controller_ids=sorted(self.mapping))]
 
     # -- commands ----------------------------------------------------------------
 
@@ -103,17 +66,17 @@ class VescCanDevice(Device):
         if msg is None:
             return
         if isinstance(msg, vc.BadFrame):
-            self.bad_frames += 1
+            self.counters["bad_frames"] += 1
             return
         if not isinstance(msg, vc.VescCommand):
             return  # another ESC's status on the bus
         index = self.mapping.get(msg.controller_id)
         if index is None:
-            self.other_ids += 1
+            self.counters["other_ids"] += 1
             return
         kind, value = self._command(index, msg)
-        self.thrusters.command(index, kind, value, self.ctx.now())
-        self.commands += 1
+        drive(self, index, kind, value, self.ctx.now())
+        self.counters["commands"] += 1
 
     def _command(self, index: int, msg: vc.VescCommand) -> tuple[str, float]:
         if msg.command == "SET_DUTY":
@@ -137,7 +100,7 @@ class VescCanDevice(Device):
         listening = bus.has_listeners
         for cid, index in self.mapping.items():
             tel = self.thrusters.telemetry(index)
-            c = self.counters[cid]
+            c = self.esc_counters[cid]
             c.advance(t, tel)
             if not listening:
                 continue  # nobody could hear it: skip the encoding, keep the counters going
@@ -145,4 +108,4 @@ class VescCanDevice(Device):
                         vc.Status4(cid, water, celsius(tel.temperature), tel.input_current, 0.0),
                         vc.Status5(cid, int(c.tachometer), tel.voltage)):
                 bus.send(vc.encode(msg))
-                self.status_frames += 1
+                self.counters["status_frames"] += 1

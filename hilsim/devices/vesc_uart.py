@@ -20,89 +20,69 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import EscCounters, celsius, mapping_text, resolve_mapping, vehicle_thrusters
-from hilsim.links.pty import PtyLink
+from hilsim.devices.base import DeviceContext, Endpoint, PtyDevice
+from hilsim.devices.thruster_io import (EscCounters, celsius, drive, mapping_text, resolve_mapping,
+                                       vehicle_thrusters)
 from hilsim.protocols import vesc_uart as vu
+from hilsim.protocols.codec import drain
 
 log = logging.getLogger(__name__)
 
 COUNTER_PERIOD = 0.02  # [s] how often the tachometer and Ah/Wh counters are integrated
 
 
-class VescUartDevice(Device):
+class VescUartDevice(PtyDevice):
     protocol = "vesc-uart"
     OPTIONS = {
-        "path": None,
-        "baudrate": 115200,
+        **PtyDevice.OPTIONS,
         "controller_id": 1,
         "mapping": {},
     }
+    COUNTERS = ("commands", "replies", "unsupported")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.thrusters = vehicle_thrusters(ctx, name)
-        self.path = self.option_pty_path("path", name)  # inside the run folder
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i + 1, (0, 255),
                                        "controller id")
-        self.controller_id = int(self.options["controller_id"])
+        self.controller_id = self.option_int("controller_id", 0, 255)
         if self.controller_id not in self.mapping:
-            raise ValueError(f"device {name!r}: controller_id {self.controller_id} is not in the mapping "
-                             f"({mapping_text(self.mapping, self.thrusters)})")
+            raise self.option_error("controller_id", f"controller_id {self.controller_id} is not in the mapping "
+                                    f"({mapping_text(self.mapping, self.thrusters)})")
         self.decoder = vu.PacketDecoder()
-        self.counters = {cid: EscCounters() for cid in self.mapping}
+        self.esc_counters = {cid: EscCounters() for cid in self.mapping}
         self.last: dict[int, tuple[str, float]] = {}
-        self.link: PtyLink | None = None
-        self._event: Any = None
-        self.commands = 0
-        self.replies = 0
-        self.unsupported = 0
-        self.unknown_ids = 0
 
     async def start(self) -> list[Endpoint]:
-        self.link = PtyLink(self.name, self.path, baudrate=int(self.options["baudrate"]), on_data=self._on_data)
-        await self.link.start()
-        self._event = self.ctx.scheduler.add(f"{self.name}.counters", COUNTER_PERIOD, self._count, priority=20)
-        log.info("%s: VESC UART on %s (%d baud), controller %d, CAN ids %s", self.name, self.link.path,
-                 self.link.baudrate, self.controller_id, mapping_text(self.mapping, self.thrusters))
-        return [Endpoint(self.name, self.protocol, "pty", self.link.path,
-                         {"baudrate": self.link.baudrate, "controller_id": self.controller_id,
+        link = await self.open_pty(self._on_data)
+        self.every("counters", COUNTER_PERIOD, self._count)
+        log.info("%s: VESC UART on %s (%d baud), controller %d, CAN ids %s", self.name, link.path,
+                 link.baudrate, self.controller_id, mapping_text(self.mapping, self.thrusters))
+        return [Endpoint(self.name, self.protocol, "pty", link.path,
+                         {"baudrate": link.baudrate, "controller_id": self.controller_id,
                           "controller_ids": sorted(self.mapping)})]
-
-    async def close(self) -> None:
-        if self._event is not None:
-            self.ctx.scheduler.remove(self._event)
-            self._event = None
-        if self.link is not None:
-            await self.link.close()
-            self.link = None
 
     def status(self) -> dict[str, float]:
         st = self.decoder.stats
-        return {"commands": float(self.commands), "replies": float(self.replies),
-                "crc_errors": float(st.crc_errors), "framing_errors": float(st.framing_errors),
-                "bytes_skipped": float(st.bytes_skipped), "unsupported": float(self.unsupported)}
+        return {**super().status(), "crc_errors": float(st.crc_errors), "framing_errors": float(st.framing_errors),
+                "bytes_skipped": float(st.bytes_skipped)}
 
     def _on_data(self, data: bytes) -> None:
-        self.decoder.receive_data(data)
-        for _ in range(10_000):
-            payload = self.decoder.next_event()
-            if payload is vu.NEED_DATA:
-                break
+        for payload in drain(self.decoder, data, limit=10_000):
             self._handle(vu.decode_command(payload), self.controller_id)
 
     def _reply(self, payload: bytes) -> None:
         if self.link is not None:
             self.link.write(vu.frame(payload))
-            self.replies += 1
+            self.counters["replies"] += 1
 
     def _handle(self, cmd: vu.Command | vu.Unsupported, cid: int) -> None:
         if isinstance(cmd, vu.Unsupported):
-            self.unsupported += 1
+            self.counters["unsupported"] += 1
             return
         if isinstance(cmd, vu.ForwardCan):
             if cmd.controller_id not in self.mapping:
-                self.unknown_ids += 1  # nobody on the CAN bus answers
+                self.counters["unknown_ids"] += 1  # nobody on the CAN bus answers
                 return
             self._handle(cmd.inner, cmd.controller_id)
             return
@@ -116,7 +96,7 @@ class VescUartDevice(Device):
             return
         if isinstance(cmd, vu.Alive):
             if index in self.last:
-                self.thrusters.command(index, *self.last[index], now)
+                drive(self, index, *self.last[index], now)
             return
         if isinstance(cmd, vu.SetDuty):
             kind, value = "duty", cmd.duty
@@ -126,17 +106,17 @@ class VescUartDevice(Device):
             kind, value = "duty", 0.0
         else:
             kind, value = "erpm", cmd.erpm
-        self.thrusters.command(index, kind, value, now)
+        drive(self, index, kind, value, now)
         self.last[index] = (kind, value)
-        self.commands += 1
+        self.counters["commands"] += 1
 
     def _count(self, t: float) -> None:
         for cid, index in self.mapping.items():
-            self.counters[cid].advance(t, self.thrusters.telemetry(index))
+            self.esc_counters[cid].advance(t, self.thrusters.telemetry(index))
 
     def _values(self, cid: int, index: int) -> vu.Values:
         tel = self.thrusters.telemetry(index)
-        c = self.counters[cid]
+        c = self.esc_counters[cid]
         water = celsius(self.thrusters.water_temperature)
         return vu.Values(
             temp_fet=water, temp_motor=celsius(tel.temperature), avg_motor_current=tel.motor_current,

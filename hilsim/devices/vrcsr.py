@@ -22,86 +22,72 @@ from __future__ import annotations
 import logging
 from typing import Any, Mapping
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint
-from hilsim.devices.thruster_io import celsius, mapping_text, resolve_mapping, vehicle_thrusters
-from hilsim.links.pty import PtyLink
+from hilsim.devices.base import DeviceContext, Endpoint, PtyDevice
+from hilsim.devices.thruster_io import celsius, drive, mapping_text, resolve_mapping, vehicle_thrusters
 from hilsim.protocols import vrcsr
+from hilsim.protocols.codec import drain
 
 log = logging.getLogger(__name__)
 
 
-class VrcsrDevice(Device):
+class VrcsrDevice(PtyDevice):
     protocol = "vrcsr"
     OPTIONS = {
-        "path": None,
-        "baudrate": 115200,
+        **PtyDevice.OPTIONS,
         "group_id": vrcsr.THRUSTER_GROUP_ID,
         "mapping": {},
         "node_ids": {},
         "device_type": 2,
     }
+    COUNTERS = ("commands", "replies", "not_emulated")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.thrusters = vehicle_thrusters(ctx, name)
-        self.path = self.option_pty_path("path", name)  # inside the run folder
         self.mapping = resolve_mapping(name, self.options["mapping"], self.thrusters, lambda i: i, (0, 62),
                                        "motor id")
         node_ids = self.options["node_ids"]
         if not isinstance(node_ids, Mapping):
-            raise ValueError(f"device {name!r}: node_ids must be a table {{motor_id = node_id}}")
-        given = {int(k): int(v) for k, v in node_ids.items()}
+            raise self.option_error("node_ids", "node_ids must be a table {motor_id = node_id}")
+        try:
+            given = {int(k): int(v) for k, v in node_ids.items()}
+        except (TypeError, ValueError):
+            raise self.option_error("node_ids", f"node_ids must map motor ids to node ids, got {node_ids!r}") from None
         self.node_of = {m: given.get(m, m + 1) for m in self.mapping}
-        self.group_id = int(self.options["group_id"])
+        self.group_id = self.option_int("group_id", 1, 255)
         nodes = list(self.node_of.values())
         if len(set(nodes)) != len(nodes) or any(not 1 <= n <= 255 or n == self.group_id for n in nodes):
-            raise ValueError(f"device {name!r}: node ids {nodes} must be distinct, 1..255 and not the group id")
+            raise self.option_error("node_ids", f"node ids {nodes} must be distinct, 1..255 and not the group id")
         self.motor_of = {n: m for m, n in self.node_of.items()}
-        self.device_type = int(self.options["device_type"]) & 0xFF
+        self.device_type = self.option_int("device_type", 0, 255)
         self.decoder = vrcsr.PacketDecoder()
-        self.link: PtyLink | None = None
-        self.commands = 0
-        self.replies = 0
-        self.not_emulated = 0
-        self.bad_payloads = 0
 
     async def start(self) -> list[Endpoint]:
-        self.link = PtyLink(self.name, self.path, baudrate=int(self.options["baudrate"]), on_data=self._on_data)
-        await self.link.start()
-        log.info("%s: VRCSR on %s (%d baud), group 0x%02X, motors %s", self.name, self.link.path,
-                 self.link.baudrate, self.group_id, mapping_text(self.mapping, self.thrusters))
-        return [Endpoint(self.name, self.protocol, "pty", self.link.path,
-                         {"baudrate": self.link.baudrate, "group_id": self.group_id,
+        link = await self.open_pty(self._on_data)
+        log.info("%s: VRCSR on %s (%d baud), group 0x%02X, motors %s", self.name, link.path,
+                 link.baudrate, self.group_id, mapping_text(self.mapping, self.thrusters))
+        return [Endpoint(self.name, self.protocol, "pty", link.path,
+                         {"baudrate": link.baudrate, "group_id": self.group_id,
                           "node_ids": {str(m): n for m, n in sorted(self.node_of.items())}})]
-
-    async def close(self) -> None:
-        if self.link is not None:
-            await self.link.close()
-            self.link = None
 
     def status(self) -> dict[str, float]:
         st = self.decoder.stats
-        return {"commands": float(self.commands), "replies": float(self.replies),
-                "crc_errors": float(st.header_crc_errors + st.payload_crc_errors),
-                "bytes_skipped": float(st.bytes_skipped), "not_emulated": float(self.not_emulated)}
+        return {**super().status(), "crc_errors": float(st.header_crc_errors + st.payload_crc_errors),
+                "bytes_skipped": float(st.bytes_skipped)}
 
     def _on_data(self, data: bytes) -> None:
-        self.decoder.receive_data(data)
-        for _ in range(10_000):
-            pkt = self.decoder.next_event()
-            if pkt is vrcsr.NEED_DATA:
-                break
+        for pkt in drain(self.decoder, data, limit=10_000):
             self._handle(pkt)
 
     def _handle(self, pkt: vrcsr.Packet) -> None:
         if pkt.node_id != self.group_id and pkt.node_id not in self.motor_of:
             return  # for another device on the RS-485 line
         if pkt.address != vrcsr.ADDR_CUSTOM_COMMAND or not pkt.payload or pkt.payload[0] != vrcsr.PROPULSION_COMMAND:
-            self.not_emulated += 1
+            self.counters["not_emulated"] += 1
             return
         cmd = vrcsr.PropulsionCommand.decode(pkt.payload)
         if cmd is None:
-            self.bad_payloads += 1
+            self.counters["bad_payloads"] += 1
             return
         now = self.ctx.now()
         if pkt.node_id == self.group_id:
@@ -110,8 +96,8 @@ class VrcsrDevice(Device):
             targets = [self.motor_of[pkt.node_id]]
         for motor in targets:
             if motor < len(cmd.powers):
-                self.thrusters.command(self.mapping[motor], "normalized", cmd.powers[motor], now)
-        self.commands += 1
+                drive(self, self.mapping[motor], "normalized", cmd.powers[motor], now)
+        self.counters["commands"] += 1
         replier = self.motor_of.get(cmd.reply_node_id)
         if replier is None or pkt.flags not in (vrcsr.FLAG_ACK, vrcsr.FLAG_STANDARD) or self.link is None:
             return
@@ -122,4 +108,4 @@ class VrcsrDevice(Device):
             body = vrcsr.StandardResponse(self.device_type, tel.rpm, tel.voltage, tel.input_current,
                                           celsius(tel.temperature), 0).payload()
         self.link.write(vrcsr.response(cmd.reply_node_id, pkt.flags, pkt.address, body))
-        self.replies += 1
+        self.counters["replies"] += 1

@@ -70,6 +70,14 @@ class PtyLink:
         self.bits_flipped = 0
         self._rng = np.random.default_rng(abs(hash(name)) % (2**32))
 
+    FAULTS = ("bit_errors",)
+
+    def set_fault(self, fault: str, on: bool, params: "dict[str, float] | None" = None) -> None:
+        """``bit_errors`` (``rate``: probability per bit, default 1e-3) on or off."""
+        if fault != "bit_errors":
+            raise ValueError(f"a serial line has no fault {fault!r}")
+        self.bit_error_rate = float((params or {}).get("rate", 1e-3)) if on else 0.0
+
     @property
     def path(self) -> str:
         """The path clients open: the symlink if there is one, else /dev/pts/N."""

@@ -29,13 +29,15 @@ from hilsim.devices import device_class
 from hilsim.devices.base import Device, Endpoint, OptionError, Periodic, RenderedFrame, RenderFailed
 from hilsim.runtime.observe import Observers
 from hilsim.resources import find_profile
-from hilsim.runtime.clock import RealTimeClock, ScaledClock, VirtualClock
+from hilsim.runtime.clock import LockstepClock, RealTimeClock, ScaledClock, VirtualClock
+from hilsim.runtime.faults import Faults
 from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, Scheduler, VehicleLoop
 from hilsim.runtime.worker import RenderWorker
 from hilsim.sim.scenario import Scenario, load_scenario
 from hilsim.sim.sonar_profile import SonarProfile, SonarSettings, load_sonar_profile
 from hilsim.sim.state import VehicleState
 from hilsim.sim.vehicle import Current, Vehicle, load_vehicle_profile
+from hilsim.sim.geometry import Pose
 from hilsim.sim.world import World
 from hilsim.runtime.timeline import Timeline
 
@@ -146,23 +148,33 @@ class Bridge:
         self._wall0 = time.time() if self.epoch is None else float(self.epoch)
         specs = self._device_specs()
         doc = Doc(self.scenario.path, self.scenario.path.read_text(), self.scenario.raw)
-        first_ddf = True
+        classes = []
         for name, proto, options in specs:
             try:
-                cls = device_class(proto)
+                classes.append(device_class(proto))
             except KeyError as exc:
                 raise doc.error(f"devices.{name}.protocol", str(exc.args[0])) from None
+        masters = [name for (name, _, _), cls in zip(specs, classes) if cls.clock_master]
+        if len(masters) > 1:
+            raise doc.error(f"devices.{masters[1]}", f"two devices drive the clock ({', '.join(masters)}); "
+                            "a run has one clock master")
+        if masters:  # a peer drives the simulation clock (lockstep): the scheduler waits for its steps
+            self.scheduler.clock = LockstepClock()
+            log.info("lockstep: device %s drives the simulation clock", masters[0])
+        for (name, proto, options), cls in zip(specs, classes):
             try:
-                dev = cls(name, options, self)
+                self.devices.append(cls(name, options, self))
             except (ValueError, KeyError) as exc:
                 raise self._device_error(doc, name, exc) from None
-            if proto == "ddf-stream" and first_ddf and self.record is not None:
-                dev.record_path = self.record  # type: ignore[attr-defined]
-                first_ddf = False
-            self.devices.append(dev)
-        if self.record is not None and not any(d.protocol == "ddf-stream" for d in self.devices):
-            raise ValueError("--record needs a ddf-stream device in the scenario")
-        if any(d.protocol in ("ddf-stream", "oculus", "aris") for d in self.devices):
+        if self.record is not None:
+            suffix = self.record.suffix.lower()
+            takers = [d for d in self.devices if suffix in d.records]
+            if not takers:
+                kinds = sorted({x for d in self.devices for x in d.records})
+                raise ValueError(f"--record {self.record}: no device of this scenario records {suffix or 'that'} "
+                                 f"files (it can record: {', '.join(kinds) or 'nothing'})")
+            takers[0].record_to(self.record)
+        if any(d.needs_renderer for d in self.devices):
             await self.worker.start()
         self.vehicle.attach(self.scheduler)
         try:
@@ -178,6 +190,7 @@ class Bridge:
             self.scheduler.clock.reset()
         if self.epoch is None:  # simulation time 0 is now, on the wall clock
             self._wall0 = time.time() - self.scheduler.clock.now()
+        self.faults = Faults(self.devices, self.vehicle.thrusters, self.now, self.publish)
         self.timeline = Timeline(self, doc)
         self.timeline.schedule()
         if self.status_interval > 0:
@@ -208,6 +221,10 @@ class Bridge:
 
         holder.append(self.scheduler.add(name, 1e12, once, offset=max(t, 0.0), priority=5, tolerance=1e12))
 
+    def object_names(self) -> list[str]:
+        """The scenario's object names as written in its file."""
+        return self.scenario.raw_object_names()
+
     def set_current(self, velocity: tuple[float, float, float]) -> None:
         """The water current from now on: NED [m/s]."""
         self.vehicle.current = None if not any(velocity) else Current.constant(velocity)
@@ -218,10 +235,21 @@ class Bridge:
         self.vehicle.state = VehicleState(time=s.time, position=np.array(position, dtype=float),
                                           attitude=np.array([0.0, 0.0, rpy[2]]))
 
+    def reset_vehicle(self) -> None:
+        """Put the vehicle back at the scenario's start, at rest (a clock master that restarted)."""
+        spec = self.scenario.vehicle
+        assert spec is not None
+        self.teleport(tuple(spec.position), (0.0, 0.0, spec.attitude[2]))  # type: ignore[arg-type]
+
     async def move_object(self, name: str, position: tuple[float, float, float],
                           rpy: tuple[float, float, float]) -> None:
-        """Place object ``name`` at a new pose (every sonar sees it from the next frame)."""
-        await self.worker.change_world("move", name, tuple(position), tuple(rpy))
+        """Place object ``name`` at a new pose: the worker's scene (every sonar sees it from the next
+        frame) and the main process's (contacts, DVL and altimeter beams)."""
+        if self._world is not None:
+            self._world.place(name, Pose.from_xyz_rpy(position, rpy).matrix(),
+                              self.scenario.object_placement(name).matrix())
+        if self.worker.pid is not None:
+            await self.worker.change_world("move", name, tuple(position), tuple(rpy))
 
     async def close(self) -> None:
         """Close every device and link, stop the worker, remove the run folder."""
@@ -268,7 +296,9 @@ class Bridge:
         self.observers.publish(topic, message)
 
     def now(self) -> float:
-        return self.vehicle.state.time if self.fast else max(self.vehicle.state.time, self.scheduler.clock.now())
+        if self.fast and not self.lockstep:
+            return self.vehicle.state.time
+        return max(self.vehicle.state.time, self.scheduler.clock.now())
 
     def wall_time(self, sim_time: float) -> float:
         return self._wall0 + sim_time
@@ -280,14 +310,14 @@ class Bridge:
         return self._profiles[path]
 
     async def render(self, mount: str, profile: str, settings: SonarSettings | None = None, *,
-                     frame_index: int = 0) -> RenderedFrame:
+                     frame_index: int = 0, budget_s: float | None = None) -> RenderedFrame:
         state = self.vehicle.state
         m = self.scenario.sensor(mount)
         pose = state.pose @ m.mount
         path = str(find_profile("sonars", profile, base=self.scenario.folder))
         frame, seconds, altitude = await self.worker.render_sonar(path, pose, settings, state.time, frame_index,
-                                                                  state.position)
-        return RenderedFrame(frame, state, seconds, altitude)
+                                                                  state.position, budget_s=budget_s)
+        return RenderedFrame(frame, state, seconds, altitude, rays=frame.settings.elevation_rays)
 
     async def altitude(self) -> float:
         """[m] distance from the vehicle straight down to the first surface (inf if none)."""
@@ -308,6 +338,19 @@ class Bridge:
         if key not in self._shared:
             self._shared[key] = await factory()
         return self._shared[key]  # type: ignore[no-any-return]
+
+    async def advance(self, dt: float) -> None:
+        """Lockstep: grant ``dt`` [s] of simulation time (only with a ``clock_master`` device); returns
+        when physics, thrusters and every device's schedule have run to the new time."""
+        clock = self.scheduler.clock
+        if not isinstance(clock, LockstepClock):
+            raise RuntimeError("advance() is for a clock_master device's lockstep; this bridge runs its own clock")
+        await clock.advance(dt)
+        self.vehicle.physics_tick(clock.now())  # the state exactly at the granted time
+
+    @property
+    def lockstep(self) -> bool:
+        return isinstance(self.scheduler.clock, LockstepClock)
 
     def defer(self, coro: Awaitable[Any]) -> Awaitable[Any] | None:
         """For scheduler callbacks: in fast mode return ``coro`` (virtual time waits for it);

@@ -125,3 +125,73 @@ class ScaledClock(RealTimeClock):
         else:
             await asyncio.sleep(0)
         self.sleep_until(deadline)
+
+
+class LockstepClock(Clock):
+    """Virtual time that a peer hands out step by step (ArduPilot's JSON backend in lockstep).
+
+    The scheduler's waits end only once the peer has granted the time (:meth:`advance`);
+    :meth:`advance` returns when everything due up to the new time has run (the scheduler
+    waits for a deadline past it). While the peer is silent, simulated time stands still and
+    the event loop keeps serving every other link.
+    """
+
+    realtime = False
+
+    def __init__(self) -> None:
+        self._t = 0.0
+        self._granted = 0.0
+        self._wake: asyncio.Future[None] | None = None
+        self._idle: asyncio.Future[None] | None = None
+        self._woken = False
+
+    @property
+    def granted(self) -> float:
+        """[s] the time the peer has allowed so far."""
+        return self._granted
+
+    def now(self) -> float:
+        return self._t
+
+    def sleep_until(self, deadline: float) -> None:
+        if deadline > self._granted + 1e-12:
+            raise RuntimeError("a lockstep clock cannot wait synchronously past the time it was granted")
+        self._t = max(self._t, deadline)
+
+    async def sleep_until_async(self, deadline: float) -> None:
+        """Wait until the peer has granted ``deadline``; returns early (time unchanged) when
+        :meth:`wake` is called to stop the scheduler."""
+        loop = asyncio.get_running_loop()
+        self._woken = False
+        while deadline > self._granted + 1e-12:
+            if self._idle is not None and not self._idle.done():
+                self._idle.set_result(None)  # all that was due by the granted time has run
+            self._wake = loop.create_future()
+            await self._wake
+            if self._woken:
+                return
+        if deadline > self._t:
+            self._t = float(deadline)
+        await asyncio.sleep(0)
+
+    def wake(self) -> None:
+        """End a wait without granting time (the scheduler is stopping)."""
+        self._woken = True
+        if self._wake is not None and not self._wake.done():
+            self._wake.set_result(None)
+        if self._idle is not None and not self._idle.done():
+            self._idle.set_result(None)
+
+    async def advance(self, dt: float) -> None:
+        """Grant ``dt`` [s] more; returns once the scheduler has run everything due by then."""
+        if not (dt >= 0 and math.isfinite(dt)):
+            raise ValueError(f"a lockstep step must be a finite non-negative time, got {dt}")
+        self._granted += dt
+        self._idle = asyncio.get_running_loop().create_future()
+        if self._wake is not None and not self._wake.done():
+            self._wake.set_result(None)
+        await self._idle
+        self._t = max(self._t, self._granted)
+
+    def reset(self) -> None:
+        """Nothing to do: the peer's grants are the only source of time."""

@@ -47,15 +47,14 @@ thruster:X     ``saturate`` (``fraction``)  speed capped at that fraction of ful
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Awaitable, Callable, Mapping, Protocol
 
 from hilsim.config import Doc, check_keys, number, vector
-
-if TYPE_CHECKING:
-    from hilsim.runtime.bridge import Bridge
+from hilsim.runtime.faults import Faults
 
 log = logging.getLogger("hilsim.timeline")
 
@@ -66,8 +65,19 @@ ACTIONS = {
     "fault": ("target", "fault", "duration_s", "factor", "rate", "fraction"),
     "clear": ("target", "fault"),
 }
-LINK_FAULTS = ("bit_errors", "silent")
-THRUSTER_FAULTS = ("fail", "saturate")
+
+
+class TimelineHost(Protocol):
+    """What the timeline acts on (the bridge)."""
+
+    faults: Faults
+
+    def object_names(self) -> list[str]: ...
+    def at(self, t: float, callback: Callable[[float], Any], name: str = "at") -> None: ...
+    def set_current(self, velocity: tuple[float, float, float]) -> None: ...
+    def teleport(self, position: tuple[float, float, float], rpy: tuple[float, float, float]) -> None: ...
+    def move_object(self, name: str, position: tuple[float, float, float],
+                    rpy: tuple[float, float, float]) -> Awaitable[None]: ...
 
 
 @dataclass(frozen=True)
@@ -90,8 +100,6 @@ def parse_timeline(doc: Doc) -> list[TimelineEvent]:
             raise doc.error(where, "expected a table")
         action = t.get("action")
         if action not in ACTIONS:
-            import difflib
-
             close = difflib.get_close_matches(str(action), list(ACTIONS), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else f"; one of {', '.join(ACTIONS)}"
             raise doc.error(f"{where}.action", f"unknown action {action!r}{hint}")
@@ -122,35 +130,11 @@ def parse_timeline(doc: Doc) -> list[TimelineEvent]:
     return sorted(out, key=lambda e: e.at)
 
 
-def device_links(device: Any) -> list[Any]:
-    """The serial lines (PtyLink) and CAN buses a device holds, also inside its servers."""
-    from hilsim.links.can.bus import CanBus
-    from hilsim.links.pty import PtyLink
-
-    found: list[Any] = []
-    seen: set[int] = set()
-
-    def visit(obj: Any, depth: int) -> None:
-        if id(obj) in seen or depth > 2:
-            return
-        seen.add(id(obj))
-        if isinstance(obj, (PtyLink, CanBus)):
-            found.append(obj)
-        if depth == 2 or not hasattr(obj, "__dict__"):
-            return
-        for v in vars(obj).values():
-            if isinstance(v, (PtyLink, CanBus)) or type(v).__module__.startswith("hilsim.links"):
-                visit(v, depth + 1)
-
-    visit(device, 0)
-    return found
-
-
 class Timeline:
     """Checks a scenario's timeline against the built bridge and schedules it."""
 
-    def __init__(self, bridge: "Bridge", doc: Doc) -> None:
-        self.bridge = bridge
+    def __init__(self, host: TimelineHost, doc: Doc) -> None:
+        self.host = host
         self.doc = doc
         self.events = parse_timeline(doc)
         self.fired: list[tuple[float, str]] = []
@@ -158,91 +142,39 @@ class Timeline:
             self._check(ev)
 
     def _check(self, ev: TimelineEvent) -> None:
-        b, p = self.bridge, ev.params
+        p = ev.params
         if ev.action == "move":
-            names = b.scenario.raw_object_names()
+            names = self.host.object_names()
             if p["object"] not in names:
                 raise self.doc.error(f"{ev.where}.object", f"no object {p['object']!r}; objects: {', '.join(names)}")
         if ev.action in ("fault", "clear"):
-            target, fault = p["target"], p["fault"]
-            if target.startswith("thruster:"):
-                self._thruster(ev)
-                if fault not in THRUSTER_FAULTS:
-                    raise self.doc.error(f"{ev.where}.fault", f"a thruster fault is one of {', '.join(THRUSTER_FAULTS)}")
-                return
-            dev = next((d for d in b.devices if d.name == target), None)
-            if dev is None:
-                raise self.doc.error(f"{ev.where}.target", f"no device {target!r}; devices: "
-                                     f"{', '.join(d.name for d in b.devices)}, or thruster:<name>")
-            if fault in LINK_FAULTS:
-                return  # the device's links are checked when they exist (after start)
-            if fault not in dev.FAULTS:
-                can = tuple(dev.FAULTS) + LINK_FAULTS
-                raise self.doc.error(f"{ev.where}.fault", f"device {target!r} has no fault {fault!r}; "
-                                     f"try one of {', '.join(can)}")
-
-    def _thruster(self, ev: TimelineEvent) -> int:
-        ts = self.bridge.vehicle.thrusters
-        name = ev.params["target"].split(":", 1)[1]
-        if ts is None:
-            raise self.doc.error(f"{ev.where}.target", "the vehicle has no thrusters")
-        try:
-            return int(name) if name.isdigit() and int(name) < len(ts) else ts.index(name)
-        except KeyError as exc:
-            raise self.doc.error(f"{ev.where}.target", str(exc.args[0])) from None
+            try:
+                kinds = self.host.faults.kinds(p["target"])
+            except KeyError as exc:
+                raise self.doc.error(f"{ev.where}.target", str(exc.args[0])) from None
+            if p["fault"] not in kinds:
+                raise self.doc.error(f"{ev.where}.fault", f"{p['target']!r} has no fault {p['fault']!r}; "
+                                     f"try one of {', '.join(kinds) or 'none'}")
 
     def schedule(self) -> None:
         for ev in self.events:
-            self.bridge.at(ev.at, lambda t, ev=ev: self.fire(ev, t), f"timeline@{ev.at:g}s:{ev.action}")
+            self.host.at(ev.at, lambda t, ev=ev: self.fire(ev, t), f"timeline@{ev.at:g}s:{ev.action}")
 
     async def fire(self, ev: TimelineEvent, t: float) -> None:
-        b, p = self.bridge, ev.params
+        h, p = self.host, ev.params
         self.fired.append((t, ev.action))
         log.warning("t=%.2fs timeline: %s %s", t, ev.action,
                     ", ".join(f"{k}={v}" for k, v in p.items()) or "")
         if ev.action == "current":
-            b.set_current(p["velocity"])
+            h.set_current(p["velocity"])
         elif ev.action == "teleport":
-            b.teleport(p["position"], p["rpy"])
+            h.teleport(p["position"], p["rpy"])
         elif ev.action == "move":
-            await b.move_object(p["object"], p["position"], p["rpy"])
+            await h.move_object(p["object"], p["position"], p["rpy"])
         elif ev.action == "fault":
-            self._set(ev, on=True)
+            h.faults.inject(p["target"], p["fault"], {k: v for k, v in p.items() if k not in ("target", "fault")})
             if "duration" in p:
-                b.at(t + p["duration"], lambda t2: self._clear_after(ev, t2), f"timeline:clear {p['fault']}")
+                h.at(t + p["duration"], lambda t2: h.faults.clear(p["target"], p["fault"]),
+                     f"timeline:clear {p['fault']}")
         elif ev.action == "clear":
-            self._set(ev, on=False)
-
-    def _clear_after(self, ev: TimelineEvent, t: float) -> None:
-        log.warning("t=%.2fs timeline: fault %s on %s cleared", t, ev.params["fault"], ev.params["target"])
-        self._set(ev, on=False)
-
-    def _set(self, ev: TimelineEvent, on: bool) -> None:
-        b, p = self.bridge, ev.params
-        target, fault = p["target"], p["fault"]
-        if target.startswith("thruster:"):
-            assert b.vehicle.thrusters is not None
-            frac = (0.0 if fault == "fail" else float(p.get("fraction", 0.5))) if on else None
-            b.vehicle.thrusters.set_limit(self._thruster(ev), frac)
-            return
-        dev = next(d for d in b.devices if d.name == target)
-        if fault in LINK_FAULTS:
-            from hilsim.links.can.bus import CanBus
-            from hilsim.links.pty import PtyLink
-
-            kind = PtyLink if fault == "bit_errors" else CanBus
-            links = [x for x in device_links(dev) if isinstance(x, kind)]
-            if not links:
-                log.error("timeline: device %s has no %s to apply %s to; ignored", target,
-                          "serial line" if fault == "bit_errors" else "CAN bus", fault)
-                return
-            for link in links:
-                if fault == "bit_errors":
-                    link.bit_error_rate = float(p.get("rate", 1e-3)) if on else 0.0
-                else:
-                    link.silent = on
-            return
-        if on:
-            dev.inject_fault(fault, p)
-        else:
-            dev.clear_fault(fault)
+            h.faults.clear(p["target"], p["fault"])

@@ -114,6 +114,21 @@ class World:
     caster_factory: Callable[[F64], RayCaster] = EmbreeCaster
 
     def __post_init__(self) -> None:
+        self._placed: dict[str, F64] = {}  # object name -> its current placement (4, 4), once moved
+        self.rebuild()
+
+    def place(self, name: str, pose: F64, initial: F64) -> None:
+        """Move object ``name`` (with its parts ``name/...``) to the (4, 4) world pose ``pose``;
+        ``initial`` is the (4, 4) pose it was built at (the scenario's), used the first time it
+        moves. The scene is rebuilt: the next query sees it there."""
+        parts = [o for o in self.objects if o.name == name or o.name.startswith(name + "/")]
+        if not parts:
+            raise KeyError(f"no object {name!r}; objects: {', '.join(self.object_names)}")
+        old = self._placed.get(name, np.asarray(initial, dtype=float))
+        delta = np.asarray(pose, dtype=float) @ np.linalg.inv(old)
+        for o in parts:
+            o.mesh.apply_transform(delta)
+        self._placed[name] = np.asarray(pose, dtype=float)
         self.rebuild()
 
     def rebuild(self) -> None:

@@ -11,6 +11,7 @@ import re
 import shutil
 import struct
 import time
+import types
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, AsyncIterator, Sequence
@@ -62,8 +63,22 @@ class SmallContext:
         from hilsim.runtime.bridge import path_inside
 
         return path_inside(self.run_dir, option or default)
+
     def now(self) -> float:
         return max(self.vehicle.state.time, self.scheduler.clock.now())
+
+    def every(self, name, period, callback, *, offset=0.0, priority=20, tolerance=None):
+        ev = self.scheduler.add(name, period, callback, offset=offset, priority=priority, tolerance=tolerance)
+        return types.SimpleNamespace(cancel=lambda: self.scheduler.remove(ev))
+
+    def observed(self, topic: str) -> bool:
+        return False
+
+    def publish(self, topic, message) -> None:
+        pass
+
+    async def shared(self, key, factory):
+        return await factory()
 
 
 @asynccontextmanager
@@ -146,7 +161,7 @@ def test_keller_one_state_on_tcp_and_rtu(tmp_path: Path) -> None:
             tcp, rtu = await tcp_client(e_tcp), await rtu_client(e_rtu, timeout=0.3)
             await asyncio.sleep(0.1)
             # one state: with sampling paused, both transports show the very same words
-            ev = next(e for e in ctx.scheduler.events if e.name == "depth")
+            ev = next(e for e in ctx.scheduler.events if e.name == "depth.sample")
             ctx.scheduler.remove(ev)
             dev.sample()
             a, b = await read_p1(tcp), await read_p1(rtu)

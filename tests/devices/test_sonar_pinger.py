@@ -24,16 +24,23 @@ class SteppedContext:
         self.t = 0.0
         self.render_s = render_s
         self.renders: list[tuple[float, object]] = []
-        self.scheduler = self
+        self.tasks: set[asyncio.Task] = set()
 
     def now(self) -> float:
         return self.t
 
-    def add(self, name, period, callback, priority=0, tolerance=0.0):
-        return name
+    def every(self, name, period, callback, *, offset=0.0, priority=0, tolerance=None):
+        return self  # the test calls the pinger's tick itself; the handle only needs cancel()
 
-    def remove(self, event) -> None:
+    def cancel(self) -> None:
         pass
+
+    def defer(self, coro):
+        """As the bridge in real time: the render runs as a task, the tick returns at once."""
+        task = asyncio.ensure_future(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return None
 
     async def render(self, mount, profile, settings, frame_index=0):
         start = self.t
@@ -64,6 +71,9 @@ def run(render_s: float, clients: list[tuple[str, float, float]], duration: floa
                 await asyncio.sleep(0)
             ctx.t = round(ctx.t + TICK, 9)
         await p.close()
+        for t in list(ctx.tasks):
+            t.cancel()
+        await asyncio.gather(*ctx.tasks, return_exceptions=True)
         return p
 
     asyncio.run(main())
@@ -108,8 +118,8 @@ def test_a_taken_vendor_port_falls_back_to_a_free_one(caplog):
     on a free port with a warning (the endpoints show where) instead of not starting."""
     import socket
 
-    from hilsim.devices.sonar_pinger import serve_vendor_port
     from hilsim.links.tcp import TcpServer
+    from hilsim.links.tcp import serve_with_fallback as serve_vendor_port
 
     async def main():
         holder = socket.socket()

@@ -704,67 +704,104 @@ def reset(sock: socket.socket) -> None:
     sock.close()
 
 
+def _oculus_fire(rate_code: int) -> bytes:
+    from hilsim.protocols import oculus as oc
+
+    return oc.encode_fire(oc.Fire(master_mode=oc.MODE_HF, ping_rate=rate_code, flags=0x09, range=3.0,
+                                  gain=100.0, version=2))
+
+
+def _aris_ping() -> bytes:
+    from hilsim.protocols import aris as ar
+
+    return ar.encode_command(ar.Ping())
+
+
+def _modbus_pipeline(sock: socket.socket) -> None:
+    try:  # pipelined requests whose replies are never read
+        sock.send(b"".join(mbap_request(i, 1, 2, 2) for i in range(100)), socket.MSG_DONTWAIT)
+    except OSError:
+        pass
+
+
+@dataclass(frozen=True)
+class WireKit:
+    """How abuse clients speak one TCP protocol:
+
+    partial: the first bytes of a valid client message (then the client vanishes);
+    huge: a valid header announcing a huge (or the largest valid) length, without its body;
+    never_reading(sock, udp, rate_code, frame_rate): make the server send to ``sock`` (which then
+    never reads): the sonars with the well-behaved clients' settings (so they share their renders);
+    junk: bytes that are not the protocol, costly for its decoder (64 KiB)."""
+
+    partial: Callable[[], bytes]
+    huge: Callable[[], bytes]
+    never_reading: Callable[..., None]
+    junk: Callable[[], bytes]
+
+
+_MODBUS = WireKit(
+    partial=lambda: mbap_request(1, 1, 2, 2)[:9],
+    huge=lambda: struct.pack(">HHHB", 1, 0, 254, 1) + b"\x10\x00\x00",  # MBAP length 254, 3 of 253 bytes
+    never_reading=lambda sock, udp, rate_code, frame_rate: _modbus_pipeline(sock),
+    junk=lambda: random.Random(1).randbytes(65536))
+
+#: one kit per TCP protocol the bridge serves; a TCP device without one is an error of the tests
+#: (tests/runtime/test_abuse.py checks every TCP endpoint of the default scenario has a kit)
+WIRE: dict[str, WireKit] = {
+    "ddf-stream": WireKit(
+        partial=lambda: b"RATE 1",
+        huge=lambda: b"RATE " + b"9" * 20000,  # a command line that never ends
+        never_reading=lambda sock, udp, rate_code, frame_rate: None,  # frames come by themselves
+        junk=lambda: b"RATE 8\n" * 9362),  # valid commands, as fast as TCP carries them
+    "oculus": WireKit(
+        partial=lambda: _oculus_fire(0)[:30],
+        huge=lambda: struct.pack("<HHHHHIH", 0x4F53, 0, 0, 0x15, 2, 0xFFFFFFF0, 0) + b"\x01\x02",
+        never_reading=lambda sock, udp, rate_code, frame_rate: sock.sendall(_oculus_fire(rate_code)),
+        junk=lambda: b"SO" * 32768),  # an id every two bytes
+    "aris": WireKit(
+        partial=lambda: _aris_ping()[:3],
+        huge=lambda: struct.pack(">I", 0xFFFFFFF0) + b"\x08\x01",
+        never_reading=lambda sock, udp, rate_code, frame_rate: aris_setup(sock, udp.getsockname()[1],
+                                                                          frame_rate=frame_rate),
+        junk=lambda: bytes(65536)),  # zero-length commands: every offset a candidate while resyncing
+    "socketcand": WireKit(
+        partial=lambda: b"< open ca",
+        huge=lambda: b"< send 123 8 " + b"11 " * 3000,  # a message that never closes
+        never_reading=lambda sock, udp, rate_code, frame_rate: socketcand_handshake(sock),
+        junk=lambda: random.Random(1).randbytes(65536)),
+    "modbus-keller": _MODBUS,
+    "modbus-witmotion": _MODBUS,
+}
+
+
+def kit(protocol: str) -> WireKit:
+    """The abuse kit of ``protocol``; KeyError naming what to add for a TCP protocol without one."""
+    if protocol not in WIRE:
+        raise KeyError(f"no abuse kit for the TCP protocol {protocol!r}: add one to WIRE in "
+                       f"tests/runtime/abuse_clients.py")
+    return WIRE[protocol]
+
+
 def partial_message(protocol: str) -> bytes:
     """The first bytes of a valid client message of ``protocol`` (then the client vanishes)."""
-    if protocol == "ddf-stream":
-        return b"RATE 1"
-    if protocol == "oculus":
-        from hilsim.protocols import oculus as oc
-
-        return oc.encode_fire(oc.Fire(master_mode=oc.MODE_HF, ping_rate=0, flags=0x09, range=3.0, version=2))[:30]
-    if protocol == "aris":
-        from hilsim.protocols import aris as ar
-
-        return ar.encode_command(ar.Ping())[:3]
-    if protocol == "socketcand":
-        return b"< open ca"
-    return mbap_request(1, 1, 2, 2)[:9]  # modbus
+    return kit(protocol).partial()
 
 
 def huge_header(protocol: str) -> bytes:
     """A valid header announcing a huge (or the largest valid) length, without its body."""
-    if protocol == "ddf-stream":
-        return b"RATE " + b"9" * 20000  # a command line that never ends
-    if protocol == "oculus":
-        return struct.pack("<HHHHHIH", 0x4F53, 0, 0, 0x15, 2, 0xFFFFFFF0, 0) + b"\x01\x02"
-    if protocol == "aris":
-        return struct.pack(">I", 0xFFFFFFF0) + b"\x08\x01"
-    if protocol == "socketcand":
-        return b"< send 123 8 " + b"11 " * 3000  # a message that never closes
-    return struct.pack(">HHHB", 1, 0, 254, 1) + b"\x10\x00\x00"  # modbus: MBAP length 254, 3 of 253 bytes
+    return kit(protocol).huge()
 
 
 def start_never_reading(protocol: str, sock: socket.socket, udp: socket.socket | None = None, *,
                         rate_code: int = 3, frame_rate: float = 5.0) -> None:
-    """Make the server send to ``sock`` (which then never reads): the sonars with the
-    well-behaved clients' settings (so they share their renders)."""
-    if protocol == "oculus":
-        from hilsim.protocols import oculus as oc
-
-        sock.sendall(oc.encode_fire(oc.Fire(master_mode=oc.MODE_HF, ping_rate=rate_code, flags=0x09, range=3.0,
-                                            gain=100.0, version=2)))
-    elif protocol == "aris":
-        assert udp is not None
-        aris_setup(sock, udp.getsockname()[1], frame_rate=frame_rate)
-    elif protocol == "socketcand":
-        socketcand_handshake(sock)
-    elif protocol.startswith("modbus"):
-        try:  # pipelined requests whose replies are never read
-            sock.send(b"".join(mbap_request(i, 1, 2, 2) for i in range(100)), socket.MSG_DONTWAIT)
-        except OSError:
-            pass
-    # ddf-stream: frames come by themselves
+    """Make the server send to ``sock`` (which then never reads)."""
+    kit(protocol).never_reading(sock, udp, rate_code, frame_rate)
 
 
 def junk(protocol: str) -> bytes:
     """Bytes that are not the protocol, costly for its decoder (64 KiB)."""
-    if protocol == "aris":
-        return bytes(65536)  # zero-length commands: every offset a candidate while resyncing
-    if protocol == "oculus":
-        return b"SO" * 32768  # an id every two bytes
-    if protocol == "ddf-stream":
-        return b"RATE 8\n" * 9362  # valid commands, as fast as TCP carries them
-    return random.Random(1).randbytes(65536)
+    return kit(protocol).junk()
 
 
 class Blaster(threading.Thread):
@@ -928,13 +965,20 @@ BLAST_TARGETS = ("aris", "oculus", "ddf-stream", "socketcand")
 
 
 def tcp_servers(endpoints: list[dict]) -> list[dict]:
+    """The TCP servers among ``endpoints`` that the abuse kits speak to (every one, in the default
+    scenario: test_abuse checks it)."""
     out = []
     for e in endpoints:
-        if e["transport"] == "tcp":
-            out.append({"protocol": e["protocol"], "address": e["address"]})
-        elif e["transport"] == "socketcand":
-            out.append({"protocol": "socketcand", "address": e["address"]})
+        proto = "socketcand" if e["transport"] == "socketcand" else e["protocol"]
+        if e["transport"] in ("tcp", "socketcand") and proto in WIRE:
+            out.append({"protocol": proto, "address": e["address"]})
     return out
+
+
+def tcp_without_kit(endpoints: list[dict]) -> list[str]:
+    """TCP endpoints no abuse kit speaks to (should be none)."""
+    return [f"{e['device']} ({e['protocol']})" for e in endpoints
+            if e["transport"] == "tcp" and e["protocol"] not in WIRE]
 
 
 def run_abuse(kind: str, endpoints: list[dict], seconds: float, turn: int) -> dict[str, Any]:

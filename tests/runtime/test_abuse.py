@@ -89,6 +89,7 @@ def rates(clients, seconds: float) -> dict[str, float]:
 
 
 def test_endpoints_cover_every_server_of_the_default_scenario(bridge):
+    assert ac.tcp_without_kit(bridge.endpoints) == []  # every TCP server has its abuse kit
     protocols = {s["protocol"] for s in tcp_servers(bridge)}
     assert protocols == set(CLIENT_LIMITS), protocols
     assert all(s["address"].startswith("127.0.0.1:") for s in tcp_servers(bridge))  # loopback by default

@@ -85,6 +85,13 @@ class CanBus(ABC):
 
     transport: ClassVar[str] = ""
     silent = False  # fault injection: the bus carries nothing (a cut or unpowered bus)
+    FAULTS = ("silent",)
+
+    def set_fault(self, fault: str, on: bool, params: Any = None) -> None:
+        """``silent``: the bus carries nothing, either way, while on."""
+        if fault != "silent":
+            raise ValueError(f"a CAN bus has no fault {fault!r}")
+        self.silent = on
 
     def __init__(self, name: str, channel: str = "can0", *, bitrate: int | None = 1_000_000,
                  burst: float = 0.05) -> None:
