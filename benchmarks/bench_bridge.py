@@ -5,14 +5,21 @@ Starts ``hilsim run`` on the water tank (real-time clock), connects 1 and then
   * the sustained frame rate every client receives [frames/s];
   * the ping-to-client latency: arrival (wall clock) of a frame's last byte minus
     the frame time in its header (the simulation time of the ping on the wall
-    clock) [ms], p50 / p99 / max over all clients' frames.
-Prints figures; never passes or fails.  Usage: python benchmarks/bench_bridge.py [--seconds 10]
+    clock) [ms], p50 / p99 / max over all clients' frames;
+  * the elevation rays per beam each frame was rendered with (frame header offset
+    732, protocols/ddf-stream.md: the bridge lowers them when frames would miss
+    their period), min / median / max.
+``--hog N`` runs N CPU-burning processes beside the bridge while it measures (a busy
+machine: the user's own stack and tools), each bounded in time; the load average is
+printed with the figures. Prints figures; never passes or fails.
+Usage: python benchmarks/bench_bridge.py [--seconds 10] [--hog N]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 import signal
 import socket
@@ -28,6 +35,16 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAME = 1024 + 96 * 512
+RAYS_OFFSET = 732  # int32 in the DDF frame header: elevation rays per beam of this frame (0: not stated)
+
+
+def hog(seconds: float) -> None:
+    """Burn one CPU for ``seconds`` (a child process)."""
+    end = time.monotonic() + seconds
+    x = 0
+    while time.monotonic() < end:
+        for _ in range(10000):
+            x += 1
 
 
 def recv_exact(s: socket.socket, n: int) -> bytes:
@@ -51,7 +68,8 @@ def measure(host: str, port: int, n_clients: int, seconds: float) -> dict:
             raw = recv_exact(s, FRAME)
             arrived = time.time()
             num, us = struct.unpack_from("<iQ", raw, 0)
-            results[k].append((num, arrived, arrived - us / 1e6))
+            rays = struct.unpack_from("<i", raw, RAYS_OFFSET)[0]
+            results[k].append((num, arrived, arrived - us / 1e6, rays))
         s.close()
 
     ts = [threading.Thread(target=client, args=(k,)) for k in range(n_clients)]
@@ -59,25 +77,29 @@ def measure(host: str, port: int, n_clients: int, seconds: float) -> dict:
         t.start()
     for t in ts:
         t.join()
-    rates, lat = [], []
+    rates, lat, rays = [], [], []
     for r in results:
         if len(r) > 2:
             rates.append((len(r) - 1) / (r[-1][1] - r[0][1]))
             lat += [x[2] for x in r[1:]]
+            rays += [x[3] for x in r]
     lat_ms = np.array(lat) * 1e3
-    return {"clients": n_clients, "rate_min": min(rates), "rate_mean": float(np.mean(rates)),
+    return {"clients": n_clients, "rate_min": min(rates), "rate_mean": float(np.mean(rates)), "rates": rates,
             "p50": float(np.percentile(lat_ms, 50)), "p99": float(np.percentile(lat_ms, 99)),
-            "max": float(lat_ms.max()), "frames": sum(len(r) for r in results)}
+            "max": float(lat_ms.max()), "frames": sum(len(r) for r in results),
+            "rays": (min(rays), float(np.median(rays)), max(rays)) if rays else (0, 0.0, 0)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--hog", type=int, default=0, metavar="N", help="N CPU-burning processes beside the bridge")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
     ep = tmp / "ep.json"
     proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", "--endpoints", str(ep), "--log-level", "WARNING",
                              "--status-interval", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    hogs: list = []
     try:
         while not ep.exists():
             if proc.poll() is not None:
@@ -86,15 +108,30 @@ def main() -> None:
         e = next(x for x in json.loads(ep.read_text()) if x["protocol"] == "ddf-stream")
         host, port = e["address"].rsplit(":", 1)
         print(f"DIDSON-like stream, water tank, profile rate {e['frame_rate_hz']} Hz, 96 x 512 samples, "
-              f"96 x 1000 rays; {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
+              f"96 x 1000 rays; {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f} before"
+              + (f"; {args.hog} CPU hog(s) beside the bridge" if args.hog else ""))
+        if args.hog:  # bounded: they stop by themselves after the measurements, and are killed at the end
+            ctx = mp.get_context("spawn")
+            hogs = [ctx.Process(target=hog, args=(2 * args.seconds + 20,), daemon=True) for _ in range(args.hog)]
+            for h in hogs:
+                h.start()
+            time.sleep(2.0)  # let the bridge feel them before measuring
         for n in (1, 8):
             r = measure(host, int(port), n, args.seconds)
+            lo, med, hi = r["rays"]
+            rays = f"{lo}/{med:.0f}/{hi}" if hi else "not stated in the header"
             print(f"  {n} client(s): {r['rate_mean']:.1f} frames/s per client (slowest {r['rate_min']:.1f}); "
                   f"ping-to-client latency p50 {r['p50']:.1f} ms, p99 {r['p99']:.1f} ms, max {r['max']:.1f} ms "
-                  f"({r['frames']} frames)")
+                  f"({r['frames']} frames); elevation rays per beam min/median/max {rays}; "
+                  f"load {os.getloadavg()[0]:.2f}")
+            if n > 1:
+                print(f"    per client [frames/s]: {' '.join(f'{x:.1f}' for x in r['rates'])}")
         period_ms = 1000.0 / float(e["frame_rate_hz"])
         print(f"  (one frame period: {period_ms:.1f} ms)")
     finally:
+        for h in hogs:
+            h.kill()
+            h.join(5)
         proc.send_signal(signal.SIGTERM)
         proc.wait(10)
 
