@@ -81,11 +81,17 @@ def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
     if why:
         raise RuntimeError(why)
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # no usage report leaves the machine
+    if address is None:
+        # a local Ray on loopback only: with "clusters" off Ray takes 127.0.0.1 as the node address and
+        # binds its servers (GCS, raylet, workers, agents) there instead of on every interface
+        os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
     import ray
+    from ray._private import ray_constants
 
     if ray.is_initialized():
         return ray
     if address is None:
+        ray_constants.ENABLE_RAY_CLUSTER = False   # read when Ray picks the node's address
         ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
                  log_to_driver=False, logging_level="WARNING")
     else:

@@ -20,6 +20,7 @@ the next object behind (the floor behind a target, say).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,8 +59,12 @@ class SonarLabels:
 def ray_fan(sonar: ImagingSonar, s: SonarSettings) -> tuple[F64, F64, I64, float]:
     """Sensor-frame directions (n, 3), d(dir)/d(phi) (n, 3), beam index (n,), elevation step [rad]."""
     p = sonar.profile
-    (az_lo, az_hi), (el_lo, el_hi) = p.azimuth_limits, p.elevation_limits
-    nb, ne = p.n_beams, s.elevation_rays
+    return _fan(tuple(p.azimuth_limits), tuple(p.elevation_limits), p.n_beams, s.elevation_rays)
+
+
+@lru_cache(maxsize=8)
+def _fan(az: tuple[float, float], el: tuple[float, float], nb: int, ne: int) -> tuple[F64, F64, I64, float]:
+    (az_lo, az_hi), (el_lo, el_hi) = az, el
     theta = az_lo + (np.arange(nb) + 0.5) * (az_hi - az_lo) / nb
     dphi = (el_hi - el_lo) / ne
     phi = el_lo + (np.arange(ne) + 0.5) * dphi
@@ -67,7 +72,15 @@ def ray_fan(sonar: ImagingSonar, s: SonarSettings) -> tuple[F64, F64, I64, float
     cp, sp, ct, st = np.cos(ph), np.sin(ph), np.cos(th), np.sin(th)
     dirs = np.stack([cp * ct, cp * st, -sp], axis=1)
     ddphi = np.stack([-sp * ct, -sp * st, -cp], axis=1)
-    return dirs, ddphi, np.repeat(np.arange(nb, dtype=np.int64), ne), dphi
+    beam = np.repeat(np.arange(nb, dtype=np.int64), ne)
+    for a in (dirs, ddphi, beam):
+        a.setflags(write=False)
+    return dirs, ddphi, beam, dphi
+
+
+def _rotate(v: F64, rot: F64) -> F64:
+    """(n, 3) vectors times a 3x3 rotation, ``v @ rot.T``, without BLAS threads."""
+    return v[:, 0:1] * rot[:, 0] + v[:, 1:2] * rot[:, 1] + v[:, 2:3] * rot[:, 2]
 
 
 def _shares(sonar: ImagingSonar, s: SonarSettings, world: World, rot: F64, dirs_s: F64, ddphi_s: F64,
@@ -77,7 +90,7 @@ def _shares(sonar: ImagingSonar, s: SonarSettings, world: World, rot: F64, dirs_
     t, obj, normal: (h,) hits of the rays ``dirs_s`` (h, 3) (sensor frame; normals in the world)."""
     p = sonar.profile
     ns = s.n_samples
-    nrm = normal @ rot
+    nrm = _rotate(normal, rot.T)
     n_dot_d = np.einsum("ij,ij->i", nrm, dirs_s)
     refl = np.abs(world.obj_reflection)[obj]
     energy = (p.k * p.k * p.source_intensity / s.elevation_rays) * refl * n_dot_d * n_dot_d / t ** 4
@@ -111,7 +124,7 @@ def sonar_labels(world: World, sonar: ImagingSonar, pose: Pose, settings: SonarS
     nb, ns = sonar.profile.n_beams, s.n_samples
     dirs_s, ddphi_s, beam, dphi = ray_fan(sonar, s)
     rot = np.asarray(pose.rotation, dtype=float)
-    dirs = dirs_s @ rot.T
+    dirs = _rotate(dirs_s, rot)
     origin = np.asarray(pose.position, dtype=float)
     n = dirs.shape[0]
     hits = world.cast(np.broadcast_to(origin, (n, 3)), dirs, t_min=s.range_min, t_max=s.range_max)
@@ -120,20 +133,21 @@ def sonar_labels(world: World, sonar: ImagingSonar, pose: Pose, settings: SonarS
     mats = tuple(dict.fromkeys(o.material.name for o in world.objects))
     mat_of_obj = np.array([mats.index(o.material.name) for o in world.objects] + [-1], dtype=np.int16)
 
-    ray, k, share = _shares(sonar, s, world, rot, dirs_s[hit], ddphi_s[hit], dphi, hits.t[hit], hits.obj[hit],
+    first_obj = hits.obj[hit]
+    dirs_hit = dirs[hit]
+    ray, k, share = _shares(sonar, s, world, rot, dirs_s[hit], ddphi_s[hit], dphi, hits.t[hit], first_obj,
                             hits.normal[hit])
     cell = k * nb + beam[hit][ray]
     intensity = np.bincount(cell, weights=share, minlength=ns * nb).reshape(ns, nb)
     label = np.full(ns * nb, -1, dtype=np.int16)
     if cell.size:
-        order = np.lexsort((share, cell))      # by cell, the strongest share last
-        last = order[np.r_[cell[order][1:] != cell[order][:-1], True]]
-        label[cell[last]] = hits.obj[hit][ray[last]]
+        order = np.argsort(share, kind="stable")   # weakest first: of the writes to one cell the last stays
+        label[cell[order]] = first_obj[ray[order]]
     label = label.reshape(ns, nb)
     material = np.where(label >= 0, mat_of_obj[label], -1).astype(np.int16)
 
     # the shadow: continue each ray through the object it hit first, to the next object behind it
-    first = hits.obj[hit]
+    first = first_obj
     t_now = hits.t[hit].copy()
     obj_now = first.copy()
     tri_now = hits.tri[hit].copy()
@@ -150,7 +164,7 @@ def sonar_labels(world: World, sonar: ImagingSonar, pose: Pose, settings: SonarS
         active[np.flatnonzero(active & (obj_now == first))] = False
         if idx.size == 0:
             break
-        d = dirs[hit][idx]
+        d = dirs_hit[idx]
         h2 = world.cast(origin + d * start[:, None], d, t_min=0.0, t_max=room)
         ok = h2.tri >= 0
         sel = idx[ok]

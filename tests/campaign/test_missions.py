@@ -1,0 +1,231 @@
+"""Mission campaigns end to end: the real bridge (``hilsim run``) and the reference stack (examples/mission.py)
+in their own processes, on the local pool and on Ray's local mode.
+
+The missions are short (no turns, a 2 s hold, time scale 4: about 10 s of wall time each).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from hilsim.campaign.mission import bridge_options
+from hilsim.campaign.results import read_table
+from hilsim.campaign.runner import Outcome, run_campaign
+
+ROOT = Path(__file__).resolve().parents[2]
+MISSION = ROOT / "examples" / "mission.py"
+FAULTS = ROOT / "scenarios" / "water_tank" / "campaigns" / "faults" / "vertical_thrusters_fail.toml"
+HAS_TRUTH = "--truth" in bridge_options()
+
+STACK = ("{python} " + str(MISSION) + " {endpoints} --out {out} --quiet --no-plots --headings '' "
+         "--hold-time 2 --timeout 60")
+TRUTH_PASS = ('no_contact = "truth.contacts == 0"\ndepth = "truth.max_depth_error_m < 0.1"\n' if HAS_TRUTH else "")
+CAMPAIGN = f"""name = "four"
+scenario = "water_tank"
+time_scale = 4.0
+duration_s = 100.0
+
+[stack]
+command = "{STACK}"
+timeout_s = 90.0
+
+[matrix]
+seed = [1, 2]
+current_m_s = [[0.0, 0.0, 0.0], [0.02, 0.0, 0.0]]
+
+[metrics]
+depth_target_m = 1.8
+depth_from_s = 15.0
+
+[pass]
+exit = "exit_code == 0"
+completed = "summary.success == true"
+hold_range = "summary.sonar.hold.range_error_m.max_abs < 0.05"
+{TRUTH_PASS}"""
+
+
+def table(o: Outcome) -> dict[str, tuple[str, str]]:
+    return {r["key"]: (r["status"], r["failed"]) for r in o.rows}
+
+
+@pytest.fixture(scope="module")
+def four(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
+    tmp = tmp_path_factory.mktemp("four")
+    (tmp / "four.toml").write_text(CAMPAIGN)
+    return run_campaign(tmp / "four.toml", out=tmp / "out")
+
+
+def test_four_reference_missions_pass_locally(four: Outcome) -> None:
+    assert len(four.rows) == 4
+    assert all(r["status"] == "pass" for r in four.rows), [(r["case"], r["failure"]) for r in four.rows]
+    rows = read_table(four.out / "results.parquet")
+    assert [(r["param.seed"], json.loads(r["param.current_m_s"])[0]) for r in rows] == [
+        (1, 0.0), (1, 0.02), (2, 0.0), (2, 0.02)]
+    assert all(r["exit_code"] == 0 and r["summary.success"] is True for r in rows)
+    report = (four.out / "report.html").read_text()
+    for r in rows:
+        run = four.out / "runs" / r["run_dir"]
+        assert (run / "stack" / "summary.json").is_file() and (run / "bridge.log").is_file()
+        assert f'href="runs/{r["run_dir"]}/bridge.log"' in report
+        # each run had its own ptys, and the bridge removed them when it stopped
+        assert (run / "pty").is_dir() and not any((run / "pty").iterdir())
+        # the current of the case reached the bridge (its timeline logs it)
+        log = (run / "bridge.log").read_text()
+        cur = json.loads(r["param.current_m_s"])[0]
+        if cur:
+            assert "current velocity=(0.02, 0.0, 0.0)" in log
+            assert (run / "scenario" / "scenario.toml").is_file()
+        else:
+            assert "velocity=(0.02" not in log
+    if HAS_TRUTH:
+        assert all(r["truth.contacts"] == 0 for r in rows)
+
+
+def test_resume_runs_only_what_is_missing(four: Outcome) -> None:
+    journal = four.out / "results.jsonl"
+    lines = journal.read_text().splitlines()
+    keep = [ln for ln in lines if json.loads(ln)["index"] != 2]
+    journal.write_text("\n".join(keep) + "\n")
+    before = {json.loads(ln)["key"]: json.loads(ln)["wall_s"] for ln in keep}
+    untouched = four.out / "runs" / json.loads(keep[0])["run_dir"] / "bridge.log"
+    mtime = untouched.stat().st_mtime_ns
+    again = run_campaign(four.campaign.path, out=four.out, resume=True)
+    assert again.ran == 1
+    assert table(again) == table(four)
+    redone = [r for r in again.rows if r["index"] == 2]
+    assert len(redone) == 1 and redone[0]["status"] == "pass"
+    assert {r["key"]: r["wall_s"] for r in again.rows if r["index"] != 2} == before
+    assert untouched.stat().st_mtime_ns == mtime
+
+
+def _listening(pids: set[int]) -> list[str]:
+    """Local addresses (hex, as /proc/net shows them) of the TCP sockets ``pids`` listen on."""
+    inodes = set()
+    for pid in pids:
+        try:
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                link = os.readlink(fd)
+                if link.startswith("socket:["):
+                    inodes.add(link[8:-1])
+        except OSError:
+            continue
+    out = []
+    for table_ in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for ln in Path(table_).read_text().splitlines()[1:]:
+            f = ln.split()
+            if f[3] == "0A" and f[9] in inodes:   # LISTEN
+                out.append(f[1])
+    return out
+
+
+def _descendants(pid: int) -> set[int]:
+    kids: dict[int, list[int]] = {}
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            kids.setdefault(ppid, []).append(int(proc.name))
+    out, todo = set(), [pid]
+    while todo:
+        for k in kids.get(todo.pop(), []):
+            if k not in out:
+                out.add(k)
+                todo.append(k)
+    return out
+
+
+def test_the_same_campaign_on_ray_local_gives_the_same_table(four: Outcome, tmp_path: Path) -> None:
+    from hilsim.campaign.executors import ray_available
+
+    why = ray_available()
+    if why:
+        pytest.skip(why)
+    o = run_campaign(four.campaign.path, out=tmp_path / "ray", ray="local", ray_cpus=2)
+    assert table(o) == table(four)
+    for r in o.rows:   # the run folders came back from the Ray workers
+        run = o.out / "runs" / r["run_dir"]
+        assert (run / "stack" / "summary.json").is_file() and (run / "bridge.log").is_file()
+    # the local Ray listens on loopback only
+    addrs = _listening(_descendants(os.getpid()) | {os.getpid()})
+    assert addrs, "no listening socket found for Ray's processes"
+    assert all(_loopback(a) for a in addrs), addrs
+
+
+def _loopback(hex_addr: str) -> bool:
+    """/proc/net/tcp{,6} local address: 127.0.0.0/8 (little-endian hex, first octet last), ::1, ::ffff:127.x."""
+    ip = hex_addr.split(":")[0]
+    if len(ip) == 8:
+        return ip.endswith("7F")
+    return ip == "00000000000000000000000001000000" or (ip.startswith("0000000000000000FFFF0000") and ip.endswith("7F"))
+
+
+def test_a_failed_thruster_fails_the_criterion_it_cannot_meet(tmp_path: Path) -> None:
+    criterion = "truth.max_depth_m > 1.7" if HAS_TRUTH else "summary.depth.final_m > 1.7"
+    (tmp_path / "f.toml").write_text(f"""name = "failed_thrusters"
+scenario = "water_tank"
+time_scale = 4.0
+duration_s = 40.0
+[stack]
+command = "{STACK.replace('--timeout 60', '--timeout 12')}"
+timeout_s = 60.0
+[matrix]
+timeline = ["{FAULTS}"]
+[pass]
+dived = "{criterion}"
+""")
+    o = run_campaign(tmp_path / "f.toml", out=tmp_path / "out")
+    (r,) = o.rows
+    assert r["status"] == "fail" and r["failed"] == "dived", r["failure"]
+    assert r["failure"].startswith("dived: ") and "missing" not in r["failure"]
+    assert r["exit_code"] == 1 and r["summary"]["success"] is False
+    log = (o.out / "runs" / r["run_dir"] / "bridge.log").read_text()
+    assert "vertical_front_left" in log
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie is dead
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def test_a_hung_stack_is_timed_out_recorded_and_cleaned_up(tmp_path: Path) -> None:
+    (tmp_path / "h.toml").write_text("""name = "hang"
+scenario = "water_tank"
+time_scale = 1.0
+[stack]
+command = "sh -c 'sleep 600 & echo $! > {run}/child.pid; echo $$ > {run}/stack.pid; wait'"
+timeout_s = 3.0
+[pass]
+exit = "exit_code == 0"
+""")
+    t0 = time.monotonic()
+    o = run_campaign(tmp_path / "h.toml", out=tmp_path / "out")
+    took = time.monotonic() - t0
+    (r,) = o.rows
+    assert r["status"] == "timeout" and r["timed_out"] is True and r["exit_code"] is None
+    assert "timeout_s = 3 s" in r["failure"]
+    assert 3.0 <= r["wall_s"] < 40.0 and took < 60.0
+    run = o.out / "runs" / r["run_dir"]
+    for name in ("stack.pid", "child.pid"):
+        assert not _alive(int((run / name).read_text())), name
+    assert r["bridge_exit"] == 0   # the bridge was stopped cleanly by SIGTERM
+    # nothing of the run is left: no process names the run folder
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                cmd = (proc / "cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                continue
+            assert str(run) not in cmd or not _alive(int(proc.name)), cmd
