@@ -21,7 +21,7 @@ from hilsim.config import ConfigError
 
 
 #: commands that live with their feature: name -> module with add_parser(subparsers) and run(args)
-PLUGINS: dict[str, str] = {}
+PLUGINS: dict[str, str] = {"campaign": "hilsim.campaign.cli"}
 
 _COMMON = argparse.ArgumentParser(add_help=False)
 _COMMON.add_argument("--log-level", default=argparse.SUPPRESS, choices=("DEBUG", "INFO", "WARNING", "ERROR"),

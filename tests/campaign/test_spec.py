@@ -160,8 +160,9 @@ def test_more_mistakes(tmp_path: Path) -> None:
 
 def test_the_command_line_prints_the_error_without_a_traceback(tmp_path: Path) -> None:
     p = write(tmp_path, BASE + '[matrix]\n"objects.box.position_m" = [[0.0, 0.0, 0.0]]\n')
-    r = subprocess.run([sys.executable, "-m", "hilsim.campaign", str(p), "--out", str(tmp_path / "out")],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2
-    assert f"{p}:{line_of(p, 'objects.box')}: [matrix.objects.box.position_m]" in r.stderr
-    assert "Traceback" not in r.stderr
+    for cmd in (["hilsim", "campaign"], ["hilsim.campaign"]):
+        r = subprocess.run([sys.executable, "-m", *cmd, str(p), "--out", str(tmp_path / "out")],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, r.stderr
+        assert f"{p}:{line_of(p, 'objects.box')}: [matrix.objects.box.position_m]" in r.stderr
+        assert "Traceback" not in r.stderr
