@@ -76,6 +76,7 @@ LR_EXTENDED_LENGTHS_M: Final = (2.5, 5.0, 10.0, 20.0, 40.0, 70.0)
 LR_CLASSIC_LENGTHS_M: Final = (2.25, 4.5, 9.0, 18.0, 36.0, 72.0)
 
 REPLY_AREA_OFFSET: Final = 768  # in the frame header; free in DDF_04 and DDF_05
+RAYS_OFFSET: Final = 732  # int32 in the frame header (zero padding in DDF_04, past DDF_05's fields): rays used
 REPLY_AREA_SIZE: Final = 256  # [bytes]; holds at most 255 bytes of reply lines
 
 _I32_MIN, _I32_MAX = -(2**31), 2**31 - 1
@@ -206,6 +207,8 @@ class FrameHeader:
     transmit: bit flags (:func:`transmit_flags`); configflags: bit0 classic
     windows, bit1 long-range model. receivergain [dB]; degc1/degc2 [degC].
     replies: command reply lines (:func:`pack_replies`), at most 255 bytes.
+    rays: hilsim's elevation rays per beam this frame was rendered with (0: not stated),
+        at ``RAYS_OFFSET`` (protocols/ddf-stream.md).
     """
 
     framenumber: int = 0
@@ -244,6 +247,7 @@ class FrameHeader:
     sonarposition: float = 0.0
     configflags: int = 0
     replies: bytes = b""
+    rays: int = 0
 
     @property
     def high_freq(self) -> bool:
@@ -399,6 +403,7 @@ def encode_frame_header(h: FrameHeader) -> bytes:
     values = [_check("FrameHeader", n, c, wire[n]) for n, c in _FRAME_LAYOUT]
     out = bytearray(FRAME_HEADER_SIZE)
     _FRAME_STRUCT.pack_into(out, 0, *values)
+    struct.pack_into("<i", out, RAYS_OFFSET, _check("FrameHeader", "rays", "i", h.rays))
     out[REPLY_AREA_OFFSET : REPLY_AREA_OFFSET + len(h.replies)] = h.replies
     return bytes(out)
 
@@ -414,6 +419,7 @@ def decode_frame_header(data: bytes) -> FrameHeader:
         values[name] = _text(values[name])
     area = bytes(data[REPLY_AREA_OFFSET : REPLY_AREA_OFFSET + REPLY_AREA_SIZE])
     values["replies"] = area.split(b"\0", 1)[0]
+    values["rays"] = struct.unpack_from("<i", data, RAYS_OFFSET)[0]
     return FrameHeader(**values)
 
 

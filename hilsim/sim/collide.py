@@ -57,6 +57,21 @@ def _unit_rows(v: F64) -> tuple[F64, np.ndarray]:
     return out, bad
 
 
+def convex_axes(rot: F64, half: F64, verts: F64, face_normals: F64, edge_dirs: F64
+                ) -> tuple[F64, F64, F64, F64]:
+    """The part of :func:`sat_convex` that does not depend on the box's centre: ``axes``
+    (A, 3), the box's radius ``r`` (A,) [m] and the polyhedron's ``o_min``, ``o_max`` (A,) [m]
+    on them (degenerate axes: r = inf, so that op = om = inf). Then for a centre c:
+    ``op = o_max - (axes @ c - r)``, ``om = (axes @ c + r) - o_min``."""
+    box_axes = rot.T
+    cross, bad = _unit_rows(_cross(box_axes[:, None, :], edge_dirs[None, :, :]).reshape(-1, 3))
+    axes = np.concatenate([box_axes, face_normals, cross])
+    r = np.abs(axes @ rot) @ half
+    proj = verts @ axes.T
+    r[3 + len(face_normals):][bad] = _INF
+    return axes, r, proj.min(axis=0), proj.max(axis=0)
+
+
 def sat_convex(c: F64, rot: F64, half: F64, verts: F64, face_normals: F64, edge_dirs: F64
                ) -> tuple[F64, F64, F64]:
     """SAT of the box against a convex polyhedron.

@@ -46,7 +46,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from hilsim.config import Doc, check_keys, quantity
-from hilsim.sim.collide import CORNERS, box_triangle_distance, choose_normal, sat_convex, sat_triangles
+from hilsim.sim.collide import CORNERS, box_triangle_distance, choose_normal, convex_axes, sat_convex, sat_triangles
 from hilsim.sim.contact_shapes import WorldShapes
 from hilsim.sim.geometry import F64, rpy_to_matrix
 from hilsim.sim.state import VehicleState
@@ -237,6 +237,7 @@ class ContactModel:
         self._shapes = None
         self._tris = None
         self._safe = None
+        self._axes: dict[int, tuple[Any, ...]] = {}  # object -> (hull rotation, its SAT axes...)
 
     def _current_shapes(self) -> WorldShapes | None:
         w = self._world
@@ -246,6 +247,7 @@ class ContactModel:
             self._shapes = WorldShapes(w, DEFAULT_FRICTION)
             self._tris = w.triangles
             self._safe = None
+            self._axes = {}
         return self._shapes
 
     # -- the step ------------------------------------------------------------------
@@ -317,15 +319,20 @@ class ContactModel:
         mu = shapes.friction[i]
         conv = shapes.convex[i]
         if conv is not None:
-            verts, fn, ed = conv
-            axes, op, om = sat_convex(c, rot, half, verts, fn, ed)
+            key = rot.tobytes()
+            cached = self._axes.get(i)
+            if cached is None or cached[0] != key:  # the axes turn with the hull only
+                cached = self._axes[i] = (key, *convex_axes(rot, half, *conv))
+            _, axes, r, omin, omax = cached
+            p = axes @ c
+            op, om = omax - (p - r), (p + r) - omin
             if min(float(op.min()), float(om.min())) < 0.0:
                 return [], float(np.max(-np.minimum(op, om)))
             if np.array_equal(rot, prot):  # same axes: the previous projections are a shift
                 shift = axes @ (c - pc)
                 pop, pom = op + shift, om - shift
             else:
-                _, pop, pom = sat_convex(pc, prot, half, verts, fn, ed)
+                _, pop, pom = sat_convex(pc, prot, half, *conv)
             sp, sm = pop < 0.0, pom < 0.0
             if sp.any() or sm.any():  # the face it crossed during the step
                 cp, cm = np.where(sp, op, np.inf), np.where(sm, om, np.inf)
@@ -340,7 +347,11 @@ class ContactModel:
             return [], sep
         tris, normals = shapes.triangles(i, idx)
         axes, op, om = sat_triangles(c, rot, half, tris, normals)
-        _, pop, pom = sat_triangles(pc, prot, half, tris, normals)
+        if np.array_equal(rot, prot):  # same axes: the previous projections are a shift
+            shift = axes @ (c - pc)
+            pop, pom = op + shift, om - shift
+        else:
+            _, pop, pom = sat_triangles(pc, prot, half, tris, normals)
         hit, depth, normal = choose_normal(axes, op, om, pop, pom, one_sided=3, prefer_eps=_PREFER_FACE)
         if not np.any(hit):
             gap = np.max(-np.minimum(op, om), axis=1)

@@ -56,6 +56,7 @@ class WorldShapes:
         self._tri_lo: list[F64] = []
         self._tri_hi: list[F64] = []
         self._grid: list[TriangleGrid | None] = []
+        self._near: dict[int, tuple[F64, F64, np.ndarray]] = {}  # object -> last query box and its triangles
         for i, ob in enumerate(objs):
             tris = self._tris[self._start[i]:self._stop[i]]
             tlo, thi = tris.min(axis=1), tris.max(axis=1)
@@ -104,13 +105,19 @@ class WorldShapes:
         """Triangles of object ``i`` whose bounding box meets [lo, hi], and a lower bound [m] of
         the distance from [lo, hi] to the object's other triangles."""
         m = _QUERY_MARGIN
-        idx = self.triangles_within(i, lo - m, hi + m)
+        cached = self._near.get(i)
+        if cached is not None and np.all(lo - 0.5 * m >= cached[0]) and np.all(hi + 0.5 * m <= cached[1]):
+            idx = cached[2]  # still well inside the last query's box: its triangles are a superset
+        else:
+            qlo, qhi = lo - m, hi + m
+            idx = self.triangles_within(i, qlo, qhi)
+            self._near[i] = (qlo, qhi, idx)
         if len(idx) == 0:
-            return idx, m
+            return idx, 0.5 * m
         g = np.maximum(np.maximum(self._tri_lo[i][idx] - hi, lo - self._tri_hi[i][idx]), 0.0)
         gap = np.linalg.norm(g, axis=1)
         near = gap <= 0.0
-        sep = float(min(m, gap[~near].min())) if np.any(~near) else m
+        sep = float(min(0.5 * m, gap[~near].min())) if np.any(~near) else 0.5 * m
         return idx[near], sep
 
     def triangles(self, i: int, idx: np.ndarray) -> tuple[F64, F64]:

@@ -302,3 +302,18 @@ def test_profiles_carry_a_hull_with_sources() -> None:
         # every thruster lies inside the hull
         for t in p.thrusters:
             assert np.all(np.abs(np.asarray(t.position) - p.hull.centre) <= np.array(p.hull.size) / 2)
+
+
+@pytest.mark.parametrize("name", ["bluerov2_heavy", "bluerov2"])
+def test_the_6dof_bluerovs_rest_on_the_floor_too(name: str) -> None:
+    """The contact step is the same for the 6-DOF model (hilsim.sim.vehicle6dof)."""
+    prof = load_vehicle_profile(ROOT / "devices" / "vehicles" / f"{name}.toml")
+    ts = prof.thruster_set()
+    vertical = np.array([abs(t.direction[2]) > 0.9 for t in prof.thrusters])
+    wrench = ts.matrix @ np.where(vertical, ts.max_thrust, 0.0)
+    end, cm = simulate(prof, TANK_WORLD, VehicleState(position=np.array([-3.0, 2.0, 2.0])), wrench, 6.0)
+    assert end.position[2] == pytest.approx(FLOOR_TOP - prof.hull.size[2] / 2, abs=0.01)
+    assert np.allclose(end.velocity, 0.0, atol=1e-6) and np.allclose(end.attitude[:2], 0.0, atol=1e-3)
+    assert cm.last.objects == ("floor",)
+    # within the damping of one step's velocity, k_w dt / (2 m_w) = 0.26 % for the BlueROV
+    assert cm.last.force == pytest.approx(wrench[2] + prof.hydrostatics.net_down, rel=5e-3)
