@@ -76,7 +76,8 @@ def truth_metrics(cols: Mapping[str, np.ndarray], params: Mapping[str, float] | 
         m["contacts"] = int(np.count_nonzero(c[1:] & ~c[:-1]) + (1 if c.size and c[0] else 0))
         m["contact_time_s"] = _f(float(np.sum(dt[c])))
         if "contact_object" in cols:
-            names = sorted({str(x) for x, on in zip(cols["contact_object"], c) if on and str(x) not in ("", "nan")})
+            names = sorted({n for x, on in zip(cols["contact_object"], c) if on
+                            for n in str(x).split(";") if n not in ("", "nan")})
             m["contact_objects"] = ";".join(names)
     for col, key in (("contact_force_N", "max_contact_force_N"), ("penetration_m", "max_penetration_m")):
         if col in cols and cols[col].dtype == float:
