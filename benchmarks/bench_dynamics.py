@@ -159,6 +159,62 @@ def jitter(rate: float, seconds: float, use_async: bool = False) -> tuple[np.nda
     return np.array(ev.stats.lateness or [0.0]), ev.stats.late, ev.stats.skipped
 
 
+def contact_loop(seconds: float, start: tuple[float, float, float], cmds: list[float], world: object,
+                 rate: float = RATE) -> tuple[float, int]:
+    """Steps/s of thrusters + vehicle + the contact step (hilsim.sim.contact) in a plain loop,
+    and how many steps were in contact."""
+    from hilsim.sim.contact import ContactModel
+
+    vehicle, thrusters = Vehicle(PROFILE), PROFILE.thruster_set()
+    contacts = ContactModel.for_profile(PROFILE, world)
+    state, dt = VehicleState(position=np.array(start)), 1.0 / rate
+    n, every, touching = int(seconds * rate), max(1, int(rate / 10)), 0
+    for k in range(int(2 * rate)):  # settle (onto the floor) before timing
+        if k % every == 0:
+            thrusters.command_all("normalized", cmds, state.time)
+        state = contacts.step(state, vehicle.step_with_thrusters(state, dt, thrusters), dt)
+    start_t = time.perf_counter()
+    for k in range(n):
+        if k % every == 0:
+            thrusters.command_all("normalized", cmds, state.time)
+        state = contacts.step(state, vehicle.step_with_thrusters(state, dt, thrusters), dt)
+        touching += contacts.last.touching
+    return n / (time.perf_counter() - start_t), touching
+
+
+def report_contacts() -> None:
+    """Physics x real time with and without a contact (issue #12): Cyclops in the water tank."""
+    from hilsim.sim.scenario import load_scenario
+    from hilsim.sim.world import Material, World, WorldObject
+
+    tank = load_scenario(ROOT / "scenarios" / "water_tank" / "scenario.toml").build_world()
+    from hilsim.config import Doc
+    from hilsim.sim.scenario import _terrain
+
+    mesh = _terrain(Doc(ROOT / "x.toml", "", {}), {"size_m": [90.0, 90.0], "resolution_m": 0.25,
+                                                   "relief_m": 1.0, "seed": 1}, "t")
+    mesh.apply_translation([0.0, 0.0, 20.0])
+    seabed = World([WorldObject("seabed", mesh, Material("sand", 2e6), watertight=False)])
+    free_cmd, down, corner = [0.6] * 4 + [0.0] * 4, [0.0] * 4 + [1.0] * 4, [1.0] * 8
+    print(f"physics with contacts (Cyclops + 8 thrusters + the contact step, {RATE:g} Hz; "
+          f"load average {os.getloadavg()[0]:.2f}):")
+    rows = [("no contact step (as above)", None),
+            ("mid-water, tank world", (tank, (-5.0, 0.0, 1.5), free_cmd, RATE)),
+            ("resting on the floor", (tank, (-3.0, 2.0, 2.6), down, RATE)),
+            ("in the floor/wall corner", (tank, (9.3, 0.0, 2.6), corner, RATE)),
+            ("resting, 50 Hz physics", (tank, (-3.0, 2.0, 2.6), down, 50.0)),
+            (f"on a {len(mesh.faces) // 1000}k-triangle terrain", (seabed, (3.0, -2.0, 19.0), down, RATE))]
+    for label, args in rows:
+        if args is None:
+            sps, rate, touching = max(physics_direct(10.0) for _ in range(2)), RATE, 0
+        else:
+            world, start, cmds, rate = args
+            sps, touching = max((contact_loop(10.0, start, cmds, world, rate) for _ in range(2)),
+                                key=lambda r: r[0])
+        share = f"{100.0 * touching / (10.0 * rate):3.0f}% of steps in contact" if args else ""
+        print(f"  {label:30s}{sps:9.0f} steps/s = {sps / rate:6.0f}x real time   ({1e6 / sps:6.1f} us/step) {share}")
+
+
 def main() -> None:
     print(f"hilsim dynamics benchmark (python {sys.version.split()[0]}, {os.cpu_count()} cpus)")
     physics_direct(2.0)  # warm up
@@ -181,6 +237,7 @@ def main() -> None:
     print(f"  at 50 Hz physics {coarse:9.0f} steps/s = {coarse / 50.0:6.0f}x real time"
           "   (20 ms steps: RK4 error vs reference < 1e-7)")
     report_6dof()
+    report_contacts()
     print(f"  load average {os.getloadavg()[0]:.2f} (other processes share these cores)")
     busy = start_busy(45.0)
     try:
@@ -200,5 +257,7 @@ def main() -> None:
 if __name__ == "__main__":
     if "--6dof" in sys.argv:
         report_6dof()
+    elif "--contacts" in sys.argv:
+        report_contacts()
     else:
         main()
