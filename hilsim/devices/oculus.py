@@ -21,6 +21,7 @@ configuration share one render per ping.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 from typing import Any
@@ -46,6 +47,17 @@ def gain_db_from_percent(percent: float) -> float:
     return 20.0 * math.log10(min(max(percent, 1.0), 100.0) / 100.0)
 
 
+def effective_gain_percent(requested: float, mode: int, hf_floor: float) -> float:
+    """The gain [%] an M-series applies (and echoes in the ping's fire message) for a requested one:
+    in HF (master mode 2) it forces the gain into [hf_floor, 100] as ``hf_floor + (1 - hf_floor/100) x
+    requested`` (40 + 0.6 x requested on the real sonar; ``protocols/oculus.md``); in LF as requested.
+    ``hf_floor`` 0 turns the law off."""
+    g = min(max(float(requested), 0.0), 100.0)
+    if mode == oc.MODE_HF and hf_floor > 0:
+        return hf_floor + (100.0 - hf_floor) / 100.0 * g
+    return g
+
+
 class OculusDevice(TcpServerDevice):
     protocol = "oculus"
     needs_renderer = True
@@ -64,9 +76,11 @@ class OculusDevice(TcpServerDevice):
         "max_clients": 8,
         "idle_timeout_s": 0,      # drop a client with no traffic either way this long (0: never: standby is legal)
         "queue_frames": 2,                  # per-client queue [pings]
+        "hf_gain_floor_percent": 40.0,      # HF gain law (40 + 0.6 x requested, as the sonar); 0: off
+        "dummy_interval_s": 1.0,            # dummy messages to a connection that gets no pings
     }
 
-    COUNTERS = ("pings", "fires", "bad_messages", "junk_bytes")
+    COUNTERS = ("pings", "fires", "bad_messages", "junk_bytes", "dummies")
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
@@ -82,7 +96,9 @@ class OculusDevice(TcpServerDevice):
         self.max_rows = self.option_int("max_rows", 16, 8192)
         self.option_int("status_port", 0, 65535)
         self.option_number("status_interval_s", 0.0, 60.0, lo_open=True)
-        self.option_int("device_id", 0, 255)
+        self.device_id = self.option_int("device_id", 0, 65535)
+        self.hf_floor = self.option_number("hf_gain_floor_percent", 0.0, 99.0)
+        self.option_number("dummy_interval_s", 0.0, 9.0, lo_open=True)
         self.pinger = ClientPinger(ctx, name, self.mount, self._send_pings)
         self._udp: asyncio.DatagramTransport | None = None
         self.status_ip = "127.0.0.1"
@@ -99,6 +115,8 @@ class OculusDevice(TcpServerDevice):
         interval = float(self.options["status_interval_s"])
         self._send_status(0.0)
         self.every("status", interval, self._send_status, priority=30, tolerance=interval)
+        dummy = float(self.options["dummy_interval_s"])
+        self.every("dummy", dummy, self._send_dummies, priority=30, tolerance=dummy)
         return [Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}",
                          {"status": f"udp {self.ctx.broadcast}:{self.options['status_port']}",
                           "beams": 512, "modes": "LF,HF"})]
@@ -168,6 +186,7 @@ class OculusDevice(TcpServerDevice):
         if fire.ping_rate == oc.PING_RATE_STANDBY:
             self.pinger.set(client.id, None)
             client.state["fire"] = fire
+            self._send_dummy(client)  # the sonar acknowledges standby with a dummy message
             return
         mode = fire.master_mode
         profile = self.profiles[mode]
@@ -177,11 +196,31 @@ class OculusDevice(TcpServerDevice):
         rows = int(min(self.max_rows, max(16, math.ceil(rng / MIN_RESOLUTION_M[mode]))))
         settings = profile.default_settings().replace(range_min=0.0, range_max=rng, n_samples=rows,
                                                       gain_mode="fixed",
-                                                      gain_db=profile.defaults.gain_db + gain_db_from_percent(fire.gain))
+                                                      gain_db=profile.defaults.gain_db + gain_db_from_percent(
+                                                          effective_gain_percent(fire.gain, mode, self.hf_floor)))
         entry = PingEntry(client, self.profile_refs[mode], settings, 1.0 / fire.ping_rate_hz,
                           extra={"fire": fire, "mode": mode})
         client.state["fire"] = fire
         self.pinger.set(client.id, entry)
+
+    # -- dummy messages ----------------------------------------------------------------
+
+    def _send_dummy(self, client: Client) -> None:
+        """A dummy message (header only, id 0xFF, from the sonar's device id) to one client."""
+        fire: oc.Fire | None = client.state.get("fire")
+        msg = oc.encode_message(oc.MSG_DUMMY, b"", src_device_id=self.device_id,
+                                dst_device_id=fire.src_device_id if fire is not None else 0)
+        if not client.closed and self.server.send(client, msg):
+            self.counters["dummies"] += 1
+
+    def _send_dummies(self, t: float) -> None:
+        """Every connection that receives no pings (never fired, or in standby) gets a dummy message,
+        as the sonar keeps an idle TCP connection alive (drivers reset a silent one)."""
+        if self.server is None:
+            return
+        for c in list(self.server.clients.values()):
+            if c.id not in self.pinger.entries:
+                self._send_dummy(c)
 
     # -- pings -------------------------------------------------------------------------
 
@@ -215,6 +254,9 @@ class OculusDevice(TcpServerDevice):
         roll, pitch, yaw = (math.degrees(a) for a in s.attitude)
         sos = fire.speed_of_sound if fire.speed_of_sound > 0 else float(self.ctx.scenario.water.sound_speed)
         start = float(s.time) if fire.version == 2 else float(int(s.time * 1000.0) & 0xFFFFFFFF)
+        echoed = effective_gain_percent(fire.gain, mode, self.hf_floor)
+        if echoed != fire.gain:
+            fire = dataclasses.replace(fire, gain=echoed)
         return oc.PingResult(
             fire=fire, image=oc.widen_samples(image, fire.data_size), bearings=oc.bearings_from_azimuths(az),
             range_resolution=(frame.range_max - frame.range_min) / image.shape[0], gains=gains,

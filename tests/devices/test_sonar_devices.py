@@ -338,7 +338,35 @@ def test_oculus_versions_data_sizes_gain_rows_and_invariant(running):
         c.close()
 
 
+def _oculus_messages(sock: socket.socket, seconds: float) -> list[tuple[int, int, int, int, bytes]]:
+    """Whole messages read for ``seconds``: (msgId, srcDeviceId, dstDeviceId, payloadSize, message),
+    split by the 16-byte header of protocols/oculus.md (oculusId 0x4F53, src, dst, msgId, version,
+    payloadSize), independently of hilsim's reader."""
+    out, buf = [], bytearray()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        sock.settimeout(max(0.01, end - time.monotonic()))
+        try:
+            chunk = sock.recv(1 << 20)
+        except socket.timeout:
+            break
+        if not chunk:
+            break
+        buf += chunk
+        while len(buf) >= 16:
+            oid, src, dst, mid, _ver, size = struct.unpack_from("<HHHHHI", buf, 0)
+            assert oid == 0x4F53, buf[:16].hex()
+            if len(buf) < 16 + size:
+                break
+            out.append((mid, src, dst, size, bytes(buf[:16 + size])))
+            del buf[:16 + size]
+    sock.settimeout(TIMEOUT)
+    return out
+
+
 def test_oculus_standby_stops_pings_and_junk_is_tolerated(running):
+    """Standby stops the pings; the sonar acknowledges it with a dummy message (id 0xFF, header only,
+    from its device id) and keeps the idle connection alive with more of them; junk is tolerated."""
     c = OculusClient(running)
     try:
         c.sock.sendall(b"\x00junk\x53\x4f" + oc.encode_message(oc.MSG_FIRE, bytes(7), version=2))
@@ -346,20 +374,78 @@ def test_oculus_standby_stops_pings_and_junk_is_tolerated(running):
         c.configure(range_m=2.0)  # a repeated fire just keeps pinging
         assert len(c.raw_pings(2)) == 2
         c.configure(range_m=2.0, rate=oc.PING_RATE_STANDBY)
-        time.sleep(0.5)  # pings already queued drain
-        c.sock.settimeout(0.1)
-        try:
-            while c.sock.recv(1 << 20):
-                pass
-        except socket.timeout:
-            pass
-        c.sock.settimeout(1.0)
-        with pytest.raises(socket.timeout):
-            c.sock.recv(1 << 20)
+        first = _oculus_messages(c.sock, 0.4)  # pings already queued may come first; then the dummy
+        dummies = [m for m in first if m[0] == 0xFF]
+        assert dummies, [m[0] for m in first]
+        mid, src, dst, size, _ = dummies[0]
+        assert size == 0 and src == running.device("oculus").device_id
+        later = _oculus_messages(c.sock, 2.5)
+        assert [m[0] for m in later] and all(m[0] == 0xFF for m in later), [m[0] for m in later]
+        assert len(later) >= 2  # a steady cadence (1 s by default): the driver's ~10 s watchdog stays fed
     finally:
         c.close()
     dev = running.device("oculus")
     assert dev.counters["bad_messages"] >= 1 and dev.counters["junk_bytes"] >= 5
+
+
+def test_oculus_idle_connection_gets_dummies_and_pinging_one_gets_none(running):
+    c = OculusClient(running)
+    try:
+        idle = _oculus_messages(c.sock, 2.3)  # connected, never fired
+        assert len(idle) >= 2 and {m[0] for m in idle} == {0xFF}
+        c.configure(range_m=2.0, rate=2)  # pinging: pings only
+        _oculus_messages(c.sock, 0.5)
+        busy = _oculus_messages(c.sock, 2.2)
+        kinds = [m[0] for m in busy]
+        assert kinds.count(0x23) >= 2 and 0xFF not in kinds, kinds
+    finally:
+        c.close()
+
+
+def _hf_ping(c: OculusClient, gain: float) -> bytes:
+    c.sock.sendall(oc.encode_fire(oc.Fire(master_mode=oc.MODE_HF, ping_rate=0, flags=0x0D, range=3.0,
+                                          gain=gain, version=2)))
+    for _ in range(30):  # pings of the previous fire may still be queued
+        p = c.raw_pings(1)[0]
+        if struct.unpack_from("<B", p, 20)[0] == 0x0D and abs(_echoed_gain(p) - (40 + 0.6 * gain)) < 1e-6:
+            return p
+    raise AssertionError(f"no ping echoing the HF gain law for {gain} %")
+
+
+def _echoed_gain(raw: bytes) -> float:
+    # SimpleFire v2 (protocols/oculus.md): header 16, masterMode 1, pingRate 1, networkSpeed 1, gammaCorrection 1,
+    # flags 1, range f64 at 21, gainPercent f64 at 29
+    return struct.unpack_from("<d", raw, 29)[0]
+
+
+def test_oculus_hf_gain_law_echoed_and_applied(running):
+    """In HF (master mode 2) the M-series forces the gain into 40-100 %: 40 + 0.6 x requested, echoed in
+    the ping's fire message (drivers rescale it back) and applied to the image."""
+    c = OculusClient(running)
+    try:
+        rows = {}
+        for gain in (50.0, 100.0):
+            raw = _hf_ping(c, gain)
+            assert _echoed_gain(raw) == pytest.approx(40 + 0.6 * gain)
+            nr, nb = struct.unpack_from("<HH", raw, 170)
+            ioff = struct.unpack_from("<I", raw, 190)[0]
+            table = np.frombuffer(raw, np.uint8, nr * (4 + nb), ioff).reshape(nr, 4 + nb)
+            rows[gain] = table[:, :4].copy().view("<f4").reshape(nr).astype(float)
+        # the applied gain differs by 20 log10(70/100) dB (not 20 log10(50/100) as requested)
+        diff = 20 * np.log10(rows[50.0] / rows[100.0])
+        assert np.allclose(diff, 20 * math.log10(0.70), atol=1e-3), diff[:4]
+        # LF echoes the request unchanged
+        c.sock.sendall(oc.encode_fire(oc.Fire(master_mode=oc.MODE_LF, ping_rate=0, flags=0x0D, range=3.0,
+                                              gain=50.0, version=2)))
+        for _ in range(30):
+            p = c.raw_pings(1)[0]
+            if struct.unpack_from("<B", p, 16)[0] == oc.MODE_LF:
+                assert _echoed_gain(p) == pytest.approx(50.0)
+                break
+        else:
+            raise AssertionError("no LF ping")
+    finally:
+        c.close()
 
 
 def test_oculus_stalled_huge_header_does_not_hurt_others(running):
