@@ -40,8 +40,10 @@ def local_workers(cpus_per_task: float, requested: int | None) -> int:
     return max(1, int(cores // max(cpus_per_task, 0.1)))
 
 
-def run_local(tasks: list[Task], workers: int, processes: bool, on_done: OnDone, on_error: OnError) -> None:
-    """Run ``tasks`` on ``workers`` threads (or spawned processes); callbacks run in this thread."""
+def run_local(tasks: list[Task], workers: int, processes: bool, on_done: OnDone, on_error: OnError,
+              on_abort: Callable[[], None] | None = None) -> None:
+    """Run ``tasks`` on ``workers`` threads (or spawned processes); callbacks run in this thread.
+    ``on_abort`` runs first when this is interrupted (Ctrl-C): it stops what the tasks started."""
     if not tasks:
         return
     pool: cf.Executor
@@ -60,6 +62,10 @@ def run_local(tasks: list[Task], workers: int, processes: bool, on_done: OnDone,
                 on_error(t, exc)
             else:
                 on_done(t, fut.result())
+    except BaseException:
+        if on_abort is not None:
+            on_abort()
+        raise
     finally:
         for fut in futures:
             fut.cancel()

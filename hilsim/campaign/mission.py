@@ -67,6 +67,18 @@ def cleanup_all() -> None:
 
 atexit.register(cleanup_all)
 
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: SIGTERM this child when the thread that started it dies (a killed Ray worker, say)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
 
 @functools.lru_cache(maxsize=1)
 def bridge_options() -> frozenset[str]:
@@ -77,6 +89,9 @@ def bridge_options() -> frozenset[str]:
     except (OSError, subprocess.TimeoutExpired):
         return frozenset()
     return frozenset(w.strip(",[]") for w in out.split() if w.startswith("--"))
+
+
+_LINUX_PREEXEC = _die_with_parent if sys.platform.startswith("linux") else None
 
 
 def _tail(path: Path, n: int = 8) -> str:
@@ -149,7 +164,7 @@ def run_mission(c: Campaign, case: Case, run_dir: Path, scenario: Path) -> dict[
         with open(run_dir / "bridge.log", "wb") as blog:
             bridge = subprocess.Popen(bridge_command(c, case, scenario, run_dir), stdout=blog,
                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                      start_new_session=True)
+                                      start_new_session=True, preexec_fn=_LINUX_PREEXEC)
         _register(bridge)
         deadline = time.monotonic() + c.stack.startup_timeout_s
         while not endpoints.exists():
@@ -165,7 +180,9 @@ def run_mission(c: Campaign, case: Case, run_dir: Path, scenario: Path) -> dict[
             cmd = expand_command(c.stack.command, values)
             with open(run_dir / "stack.log", "wb") as slog:
                 stack = subprocess.Popen(cmd, stdout=slog, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                         cwd=c.folder, env=dict(env, **c.stack.env), start_new_session=True)
+                                         cwd=c.folder if c.folder.is_dir() else run_dir,
+                                         env=dict(env, **c.stack.env), start_new_session=True,
+                                         preexec_fn=_LINUX_PREEXEC)
             _register(stack)
             try:
                 row["exit_code"] = stack.wait(timeout=c.stack.timeout_s)

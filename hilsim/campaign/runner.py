@@ -169,7 +169,10 @@ def run_campaign(path: Path | str, out: Path | None = None, workers: int | None 
         if ray is None:
             cpus = c.stack.cpus if c.stack else 1.0
             n = executors.local_workers(cpus, workers)
-            executors.run_local(tasks, n, processes=c.kind == "render", on_done=on_done, on_error=on_error)
+            from hilsim.campaign.mission import cleanup_all as abort
+
+            executors.run_local(tasks, n, processes=c.kind == "render", on_done=on_done, on_error=on_error,
+                                on_abort=abort)
         else:
             executors.ray_init(None if ray == "local" else ray, ray_cpus)
             executors.run_ray(tasks, on_done, on_error)

@@ -229,3 +229,41 @@ exit = "exit_code == 0"
             except OSError:
                 continue
             assert str(run) not in cmd or not _alive(int(proc.name)), cmd
+
+
+def test_ctrl_c_stops_the_campaign_and_its_runs(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    (tmp_path / "h.toml").write_text("""name = "interrupted"
+scenario = "water_tank"
+time_scale = 1.0
+[stack]
+command = "sh -c 'sleep 600 & echo $! > {run}/child.pid; echo $$ > {run}/stack.pid; wait'"
+timeout_s = 600.0
+""")
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "hilsim", "campaign", str(tmp_path / "h.toml"), "--out", str(out)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(out.glob("runs/*/child.pid")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        (run,) = [f.parent for f in out.glob("runs/*/child.pid")]
+        time.sleep(0.2)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    for name in ("stack.pid", "child.pid"):
+        assert not _alive(int((run / name).read_text())), name
+    for proc in Path("/proc").iterdir():   # no bridge (nor anything else) of the run is left
+        if proc.name.isdigit():
+            try:
+                cmd = (proc / "cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                continue
+            assert str(run) not in cmd or not _alive(int(proc.name)), cmd
