@@ -24,7 +24,8 @@ map's default), map (a file in ``protocols/`` or the scenario folder), sensor
 arm; "" the body origin), max_clients (per TCP server), max_client_rate [requests/s]
 per TCP client (0: no limit; a client over it is read more slowly, nothing is lost),
 idle_timeout_s (a TCP client that sends no request for this long is disconnected, as
-Modbus TCP gateways do; default 60, 0: never).
+Modbus TCP gateways do; default 60, 0: never), evict_grace_s (a full TCP server admits a
+newcomer by evicting the client that has sent no request for longer than this; 0: never).
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ class ModbusSensorDevice(Device):
     OPTIONS: ClassVar[Mapping[str, Any]] = {
         "transport": ["tcp", "rtu"], "port": 0, "path": "", "baudrate": 9600, "parity": "N", "stop_bits": 1,
         "device_id": 0, "map": "", "sensor": "", "rate": 0.0, "mount": "", "max_clients": 32,
-        "max_client_rate": 1000.0, "idle_timeout_s": 60.0,
+        "max_client_rate": 1000.0, "idle_timeout_s": 60.0, "evict_grace_s": 5.0,
     }
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
@@ -118,6 +119,7 @@ class ModbusSensorDevice(Device):
         self.option_int("max_clients", 1, 10_000)
         self.option_number("max_client_rate", 0.0)
         self.option_number("idle_timeout_s", 0.0)
+        self.option_number("evict_grace_s", 0.0)
         self.option_number("rate", 0.0)
         if o["path"]:  # a path that leaves the run folder fails here, with the scenario line, not at start
             self.option_pty_path("path", "")
@@ -228,7 +230,8 @@ class ModbusSensorDevice(Device):
             self.tcp = self.own(ModbusTcpServer(self.name, self.target, self.ctx.bind, int(o["port"]),
                                                 max_clients=int(o["max_clients"]),
                                                 max_rate=float(o["max_client_rate"]),
-                                                idle_timeout=float(o["idle_timeout_s"]) or None))
+                                                idle_timeout=float(o["idle_timeout_s"]) or None,
+                                                evict_grace=float(o["evict_grace_s"])))
             host, port = await self.tcp.start()
             endpoints.append(Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}", extra))
         if "rtu" in self.transports:

@@ -6,6 +6,7 @@ The missions are short (no turns, a 2 s hold, time scale 4: about 10 s of wall t
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import time
@@ -68,6 +69,9 @@ def test_four_reference_missions_pass_locally(four: Outcome) -> None:
         (1, 0.0), (1, 0.02), (2, 0.0), (2, 0.02)]
     assert all(r["exit_code"] == 0 and r["summary.success"] is True for r in rows)
     report = (four.out / "report.html").read_text()
+    # self-contained: no script, style or link fetched from anywhere
+    assert "<script src" not in report and "http://" not in report and "https://" not in report
+    assert 'id="q"' in report and 'id="st"' in report and report.count('class="col"') >= 4   # the filters
     for r in rows:
         run = four.out / "runs" / r["run_dir"]
         assert (run / "stack" / "summary.json").is_file() and (run / "bridge.log").is_file()
@@ -211,8 +215,11 @@ timeout_s = 3.0
 exit = "exit_code == 0"
 """)
     t0 = time.monotonic()
-    o = run_campaign(tmp_path / "h.toml", out=tmp_path / "out")
+    progress = io.StringIO()
+    o = run_campaign(tmp_path / "h.toml", out=tmp_path / "out", stream=progress)
     took = time.monotonic() - t0
+    assert progress.getvalue().startswith("campaign hang: 1/1 (timeout 1) elapsed 0:00:")
+    assert "ETA 0:00:00" in progress.getvalue()
     (r,) = o.rows
     assert r["status"] == "timeout" and r["timed_out"] is True and r["exit_code"] is None
     assert "timeout_s = 3 s" in r["failure"]

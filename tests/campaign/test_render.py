@@ -119,3 +119,47 @@ def test_resume_renders_only_the_missing_frames(tmp_path: Path) -> None:
     again = run_campaign(tmp_path / "c.toml", out=tmp_path / "out", workers=1, resume=True)
     assert again.ran == 1 and len(again.rows) == 6   # 2 frames missing: one chunk of 2
     assert sorted(r["frame"] for r in again.rows) == list(range(6))
+
+
+def test_poses_along_a_path_in_a_box_and_listed() -> None:
+    from hilsim.campaign.render import sample_poses
+    from hilsim.campaign.spec import Poses
+
+    path = Poses("path", waypoints_m=((0.0, 0.0, 1.0), (3.0, 0.0, 1.0), (3.0, 4.0, 1.0)))
+    ps = sample_poses(path, 8, seed=1)   # 7 m long: a pose every metre, heading along the leg
+    assert [p[0] for p in ps] == list(range(8))
+    np.testing.assert_allclose([p[1:4] for p in ps], [(0, 0, 1), (1, 0, 1), (2, 0, 1), (3, 0, 1), (3, 1, 1),
+                                                     (3, 2, 1), (3, 3, 1), (3, 4, 1)], atol=1e-12)
+    assert [round(p[6]) for p in ps] == [0, 0, 0, 90, 90, 90, 90, 90]
+    box = Poses("box", min_m=(-1.0, -2.0, 1.0), max_m=(1.0, 2.0, 1.5), yaw_deg=(-10.0, 10.0))
+    a, b = sample_poses(box, 200, seed=3), sample_poses(box, 200, seed=3)
+    assert a == b and a != sample_poses(box, 200, seed=4)   # drawn from the seed
+    xyz = np.array([p[1:4] for p in a])
+    assert (xyz.min(0) >= (-1, -2, 1)).all() and (xyz.max(0) <= (1, 2, 1.5)).all()
+    assert np.ptp(xyz[:, 0]) > 1.5 and all(-10 <= p[6] <= 10 and p[4] == p[5] == 0 for p in a)
+    listed = Poses("list", listed=((1.0, 2.0, 3.0, 0.0, 5.0, 45.0),))
+    assert sample_poses(listed, 1, seed=0) == [(0, 1.0, 2.0, 3.0, 0.0, 5.0, 45.0)]
+
+
+def test_a_render_campaign_with_the_camera_labels_its_pixels(tmp_path: Path, tank: tuple) -> None:
+    (tmp_path / "c.toml").write_text("""name = "cam"
+kind = "render"
+scenario = "water_tank"
+[render]
+camera = true
+elevation_rays = 50
+[render.poses]
+list = [{ position_m = [-1.33, 0.0, 1.5] }, { position_m = [-0.83, 0.2, 1.5], yaw_deg = 15.0 }]
+""")
+    o = run_campaign(tmp_path / "c.toml", out=tmp_path / "out", workers=1)
+    rows = read_table(o.table)
+    assert len(rows) == 2
+    sc, world, _ = tank
+    for r in rows:
+        assert (o.out / r["files.camera_png"]).is_file()
+        with np.load(o.out / r["files.npz"]) as z:
+            obj, rgb = z["camera_object"], z["camera_rgb"]
+        cub = world.object_index("cuboid")
+        assert rgb.shape[:2] == obj.shape and (obj == cub).sum() > 100   # the cuboid is in view
+        # a pixel labelled with the cuboid shows the cuboid's blue plastic more than the grey floor's
+        assert rgb[obj == cub][:, 2].mean() > rgb[obj == world.object_index("floor")][:, 2].mean()
