@@ -26,6 +26,13 @@ per TCP client (0: no limit; a client over it is read more slowly, nothing is lo
 idle_timeout_s (a TCP client that sends no request for this long is disconnected, as
 Modbus TCP gateways do; default 60, 0: never), evict_grace_s (a full TCP server admits a
 newcomer by evicting the client that has sent no request for longer than this; 0: never).
+
+The sensors' native serial dialects (:mod:`hilsim.devices.serial_dialects`) share the
+same register image: the Keller serves the KELLER bus beside Modbus on its RTU line
+(told by function code, as the Series 30 does), and with transport ``"rtu-tcp"`` that
+line over TCP on ``rtu_tcp_port`` (both protocols, as a serial device server passes
+them); the IMU with transport ``"uart"`` streams the WitMotion UART packets on a pty of
+its own (``uart_path``, "": ``<run_dir>/<name>_uart.tty``; ``uart_baudrate``, 115200).
 """
 
 from __future__ import annotations
@@ -37,7 +44,10 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
 from hilsim.devices.base import Device, DeviceContext, Endpoint, OptionError
-from hilsim.links.modbus import ModbusRtuServer, ModbusTarget, ModbusTcpServer, WriteAction
+from hilsim.devices.serial_dialects import KellerBus, WitUart
+from hilsim.links.modbus import (ModbusRtuServer, ModbusTarget, ModbusTcpServer, RtuSession, SerialLineTcpServer,
+                                 WriteAction)
+from hilsim.protocols import keller_bus, witmotion_uart
 from hilsim.protocols.registers import DEVICE_FAILURE, ModbusError, Register, RegisterImage, RegisterMap, load_map
 from hilsim.resources import data_path, find_profile
 from hilsim.sim.navigation import (
@@ -96,6 +106,7 @@ class ModbusSensorDevice(Device):
     DEFAULT_MAP: ClassVar[str]
     DEFAULT_SENSOR: ClassVar[str]
     SIGNALS: ClassVar[frozenset[str]]
+    TRANSPORTS: ClassVar[tuple[str, ...]] = TRANSPORTS
     OPTIONS: ClassVar[Mapping[str, Any]] = {
         "transport": ["tcp", "rtu"], "port": 0, "path": "", "baudrate": 9600, "parity": "N", "stop_bits": 1,
         "device_id": 0, "map": "", "sensor": "", "rate": 0.0, "mount": "", "max_clients": 32,
@@ -107,9 +118,9 @@ class ModbusSensorDevice(Device):
         o = self.options
         transport = o["transport"]
         self.transports = (transport,) if isinstance(transport, str) else tuple(transport)
-        bad = [t for t in self.transports if t not in TRANSPORTS]
+        bad = [t for t in self.transports if t not in self.TRANSPORTS]
         if bad or not self.transports:
-            raise self.option_error("transport", f"transport must be a list of {TRANSPORTS}, got {transport!r}")
+            raise self.option_error("transport", f"transport must be a list of {self.TRANSPORTS}, got {transport!r}")
         if str(o["parity"]).upper() not in ("N", "E", "O"):
             raise self.option_error("parity", f"parity must be \"N\", \"E\" or \"O\", got {o['parity']!r}")
         self.option_int("baudrate", 1)
@@ -302,6 +313,60 @@ class KellerDevice(ModbusSensorDevice):
     DEFAULT_MAP = "keller_serie30"
     DEFAULT_SENSOR = "keller_serie30"
     SIGNALS = frozenset({"pressure", "temperature"})
+    TRANSPORTS = (*TRANSPORTS, "rtu-tcp")
+    OPTIONS = {**ModbusSensorDevice.OPTIONS, "rtu_tcp_port": 0}
+
+    def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
+        super().__init__(name, options, ctx)
+        self.option_int("rtu_tcp_port", 0, 65535)
+        self.keller = KellerBus(name, self.image, self.target, self.zero_p1)
+        self.line_tcp: SerialLineTcpServer | None = None
+
+    async def start(self) -> list[Endpoint]:
+        """Modbus as the base class serves it, plus the KELLER bus on the same RTU line (and on
+        that line over TCP): after start the protocol is in its power-up state (F48 first)."""
+        endpoints = await super().start()
+        extra = {"device_id": self.target.device_id, "also": "modbus-rtu"}
+        line: RtuSession | None = None
+        if self.rtu is not None:
+            self.keller.line_targets = self.rtu.session.targets
+            self.rtu.add_dialect(keller_bus.DIALECT, self.keller.handle_frame)
+            self.own(_RemoveDialect(self.rtu, self.keller.handle_frame))
+            line = self.rtu.session
+            rtu_ep = next(e for e in endpoints if e.transport == "pty")
+            endpoints.append(Endpoint(self.name, "keller-bus", "pty", rtu_ep.address,
+                                      {k: rtu_ep.extra[k] for k in ("baudrate", "parity", "stop_bits")} | extra))
+        if "rtu-tcp" in self.transports:
+            if line is None:  # no pty: a line of its own for the TCP clients
+                line = RtuSession([self.target])
+                line.add_dialect(keller_bus.DIALECT, self.keller.handle_frame)
+            self.line_tcp = self.own(SerialLineTcpServer(f"{self.name}-line", line, self.ctx.bind,
+                                                         int(self.options["rtu_tcp_port"]),
+                                                         idle_timeout=float(self.options["idle_timeout_s"]) or None))
+            host, port = await self.line_tcp.start()
+            endpoints.append(Endpoint(self.name, "keller-bus", "tcp", f"{host}:{port}",
+                                      {**extra, "framing": "serial line (raw: KELLER bus and Modbus RTU frames)"}))
+        return endpoints
+
+    def zero_p1(self, setpoint: float | None) -> None:
+        """Zero P1 so that it reads ``setpoint`` [Pa] now (None: back to the factory zero);
+        ValueError when the channel is in error or out of range."""
+        if setpoint is None:
+            self.zero = 0.0
+        else:
+            raw = self.last_reading.pressure if self.last_reading is not None else math.nan
+            if not math.isfinite(raw) or self.channel_error or not math.isfinite(setpoint):
+                raise ValueError("cannot zero a channel in error or out of range")
+            self.zero = raw - setpoint
+        log.info("%s: P1 zero point %.5f bar", self.name, self.zero / 1e5)
+        if self.last_reading is not None:  # the registers show the zeroed value at once
+            self.image.update(self.signals(self.last_reading), self.image.time)
+
+    def status(self) -> dict[str, float]:
+        r = self.keller.responder
+        out = super().status()
+        out.update({"keller_requests": r.requests, "keller_exceptions": r.exceptions})
+        return out
 
     zero: float = 0.0            # [Pa] subtracted from P1 since the last "set zero"
     channel_error: bool = False  # fault injection: P1 reads NaN
@@ -349,13 +414,20 @@ class KellerDevice(ModbusSensorDevice):
             super().clear_fault(fault)
 
     def _set_zero(self, register: Register, value: float) -> None:
-        raw = self.last_reading.pressure if self.last_reading is not None else math.nan
-        if not math.isfinite(raw) or self.channel_error:
-            raise ModbusError(DEVICE_FAILURE, "cannot zero a channel in error or out of range")
-        self.zero = raw
-        log.info("%s: P1 zeroed at %.5f bar", self.name, raw / 1e5)
-        if self.last_reading is not None:  # the registers show the zeroed value at once
-            self.image.update(self.signals(self.last_reading), self.image.time)
+        try:
+            self.zero_p1(0.0)
+        except ValueError as exc:
+            raise ModbusError(DEVICE_FAILURE, str(exc)) from None
+
+
+class _RemoveDialect:
+    """The KELLER bus's place on an RTU line, as an owned link: closing it takes the handler off."""
+
+    def __init__(self, rtu: ModbusRtuServer, handler: Any) -> None:
+        self.rtu, self.handler = rtu, handler
+
+    def close(self) -> None:
+        self.rtu.remove_dialect(self.handler)
 
 
 class WitMotionDevice(ModbusSensorDevice):
@@ -369,6 +441,40 @@ class WitMotionDevice(ModbusSensorDevice):
                                                               "magnetic_field") for a in "xyz"}
                         | {f"attitude.{a}" for a in ("roll", "pitch", "yaw")}
                         | {f"quaternion.{a}" for a in "wxyz"})
+
+    TRANSPORTS = (*TRANSPORTS, "uart")
+    OPTIONS = {**ModbusSensorDevice.OPTIONS, "uart_path": "", "uart_baudrate": 115200}
+
+    def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
+        super().__init__(name, options, ctx)
+        baud = self.option_int("uart_baudrate", 1)
+        if baud not in witmotion_uart.BAUD_CODES:
+            raise self.option_error("uart_baudrate", f"uart_baudrate must be one of {sorted(witmotion_uart.BAUD_CODES)}"
+                                                     f", got {baud}")
+        self.uart: WitUart | None = None
+        if "uart" in self.transports:
+            path = self.option_pty_path("uart_path", f"{name}_uart.tty")
+            self.uart = WitUart(name, ctx, self.image, path, baud, silent=lambda: self.target.silent)
+
+    async def start(self) -> list[Endpoint]:
+        """Modbus as the base class serves it, plus the UART stream on its own pty."""
+        endpoints = await super().start()
+        if self.uart is not None:
+            self.own(self.uart)
+            path = await self.uart.start()
+            self.use(self.uart.link)  # its line's faults (bit errors)
+            cfg = self.uart.config
+            endpoints.append(Endpoint(self.name, "witmotion-uart", "pty", path,
+                                      {"baudrate": cfg.baudrate, "rate_hz": cfg.rate,
+                                       "content": [hex(k) for k in witmotion_uart.content_kinds(cfg.rsw)]}))
+        return endpoints
+
+    def status(self) -> dict[str, float]:
+        out = super().status()
+        if self.uart is not None:
+            out.update({"uart_packets": self.uart.packets, "uart_rate_hz": self.uart.config.rate,
+                        "uart_commands": self.uart.config.commands})
+        return out
 
     def make_sensor(self) -> Imu:
         profile = load_imu_profile(self._profile_path())

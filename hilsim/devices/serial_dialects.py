@@ -167,7 +167,9 @@ class WitUart:
         self._write(wu.RRATE, wu.RRATE_NONE)  # one cycle, then none
 
     def _tick(self, t: float) -> None:
-        if self.config.rate != self._rate:  # changed through Modbus
+        if self.link.baudrate != self.config.baudrate:  # BAUD written through Modbus
+            self.link.baudrate = self.config.baudrate
+        if self.config.rate != self._rate:  # RRATE written through Modbus
             self._reschedule()
             return
         self._send(t)
