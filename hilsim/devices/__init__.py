@@ -22,6 +22,7 @@ REGISTRY: dict[str, str] = {
     "vrcsr": "hilsim.devices.vrcsr:VrcsrDevice",
     "modbus-keller": "hilsim.devices.modbus_sensor:KellerDevice",
     "modbus-witmotion": "hilsim.devices.modbus_sensor:WitMotionDevice",
+    "ardupilot-json": "hilsim.devices.ardupilot_json:ArdupilotJsonDevice",
     "dvl-a50": "hilsim.devices.dvl:DvlDevice",
     "nmea-gnss": "hilsim.devices.gnss:GnssDevice",
     "ping1d": "hilsim.devices.ping1d:Ping1dDevice",

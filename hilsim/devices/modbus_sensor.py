@@ -335,7 +335,8 @@ class KellerDevice(ModbusSensorDevice):
             line = self.rtu.session
             rtu_ep = next(e for e in endpoints if e.transport == "pty")
             endpoints.append(Endpoint(self.name, "keller-bus", "pty", rtu_ep.address,
-                                      {k: rtu_ep.extra[k] for k in ("baudrate", "parity", "stop_bits")} | extra))
+                                      {"connect": f"uart://{rtu_ep.address}:{rtu_ep.extra['baudrate']}",
+                                       **{k: rtu_ep.extra[k] for k in ("baudrate", "parity", "stop_bits")}, **extra}))
         if "rtu-tcp" in self.transports:
             if line is None:  # no pty: a line of its own for the TCP clients
                 line = RtuSession([self.target])
@@ -345,7 +346,8 @@ class KellerDevice(ModbusSensorDevice):
                                                          idle_timeout=float(self.options["idle_timeout_s"]) or None))
             host, port = await self.line_tcp.start()
             endpoints.append(Endpoint(self.name, "keller-bus", "tcp", f"{host}:{port}",
-                                      {**extra, "framing": "serial line (raw: KELLER bus and Modbus RTU frames)"}))
+                                      {"connect": f"tcp://{host}:{port}", **extra,
+                                       "framing": "serial line (raw: KELLER bus and Modbus RTU frames)"}))
         return endpoints
 
     def zero_p1(self, setpoint: float | None) -> None:
@@ -465,7 +467,8 @@ class WitMotionDevice(ModbusSensorDevice):
             self.use(self.uart.link)  # its line's faults (bit errors)
             cfg = self.uart.config
             endpoints.append(Endpoint(self.name, "witmotion-uart", "pty", path,
-                                      {"baudrate": cfg.baudrate, "rate_hz": cfg.rate,
+                                      {"connect": f"uart://{path}:{cfg.baudrate}", "baudrate": cfg.baudrate,
+                                       "rate_hz": cfg.rate,
                                        "content": [hex(k) for k in witmotion_uart.content_kinds(cfg.rsw)]}))
         return endpoints
 
