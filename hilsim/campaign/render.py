@@ -22,10 +22,10 @@ from hilsim.campaign.spec import Campaign, Poses
 
 PoseRow = tuple[int, float, float, float, float, float, float]   # frame, x, y, z, roll, pitch, yaw [m, deg]
 
-# label colours: one per object index (cycled), no echo black, shadow dark blue
-_PALETTE = np.array([[230, 159, 0], [86, 180, 233], [0, 158, 115], [240, 228, 66], [0, 114, 178],
-                     [213, 94, 0], [204, 121, 167], [200, 200, 200]], dtype=np.uint8)
-_SHADOW = np.array([30, 30, 90], dtype=np.uint8)
+# label colours: one per object index (cycled), no echo black, shadow grey
+_PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+                     [140, 86, 75], [227, 119, 194], [188, 189, 34], [23, 190, 207], [255, 255, 255]], dtype=np.uint8)
+_SHADOW = np.array([80, 80, 80], dtype=np.uint8)
 
 
 def sample_poses(p: Poses, count: int, seed: int) -> list[PoseRow]:
@@ -122,8 +122,9 @@ def render_chunk(c: Campaign, case: Case, scenario: Path, poses: list[PoseRow], 
             "case": case.id, "index": case.index, "key": f"{case.key}-{frame:05d}", "frame": frame,
             "params": dict(case.params), "scenario": scen.name, "seed": seed, "status": "done",
             "x_m": x, "y_m": y, "z_m": z, "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw,
-            "rays": f.n_rays, "rays_hit": f.n_hits, "hits": lab.hits,
-            "cells": lab.cells, "shadow_cells": int(lab.shadow.sum()),
+            "rays": f.n_rays, "rays_hit": f.n_hits,
+            "hits": {k: lab.hits.get(k, 0) for k in lab.object_names},
+            "cells": {k: lab.cells.get(k, 0) for k in lab.object_names}, "shadow_cells": int(lab.shadow.sum()),
             "render_ms": round(t_render * 1e3, 2), "wall_s": round(time.perf_counter() - t0, 4),
             "files": files,
         })
