@@ -186,10 +186,12 @@ class DvlDevice(TcpServerDevice):
             if isinstance(ev, dj.Command):
                 self.counters["commands"] += 1
                 reply = self._command(ev.command, ev.parameters)
-            else:
+            elif isinstance(ev, dj.BadCommand):
                 self.counters["bad_commands"] += 1
-                reason = ev.reason if not isinstance(ev, Oversize) else f"line longer than {dj.MAX_LINE} bytes"
-                reply = dj.response(getattr(ev, "response_to", ""), False, reason)
+                reply = dj.response(ev.response_to, False, ev.reason)
+            else:   # Oversize: the line is skipped to its end
+                self.counters["bad_commands"] += 1
+                reply = dj.response("", False, f"line longer than {dj.MAX_LINE} bytes")
             if "dropout" not in self.faults:
                 self.server.send(client, reply)
 

@@ -432,3 +432,39 @@ def test_ping1d_continuous_and_nack(rb: RunningBridge, ping: Any) -> None:
     bad[-1] ^= 0x55
     assert nack_for(b"\x00garbage" + bytes(bad)) == definitions.COMMON_GENERAL_REQUEST    # bad checksum
     assert ping.get_distance() is not None                                              # still serving
+
+
+def test_bad_input_never_stops_the_devices(rb: RunningBridge) -> None:
+    """Garbage, an endless line, a flood and a client vanishing mid-line: each answered as documented or
+    skipped, and the devices keep serving (a new client gets reports and answers)."""
+    address = rb.endpoints[("dvl", "dvl-json")].address
+    c = JsonClient(address)
+    c.send(bytes(range(256)) * 40 + b"\n")                 # binary junk, one line
+    r = c.response("")
+    assert r["success"] is False
+    c.send(b"{" * 10_000)                                  # a line far beyond the 4096-byte bound ...
+    c.send(b"\n" + json.dumps({"command": "get_config"}).encode() + b"\n")
+    assert c.response("get_config")["success"] is True    # ... skipped to its end, then in step again
+    c.send(b'{"command": "get_con')                        # vanish mid-line
+    c.close()
+    c = JsonClient(address)
+    assert any(m.get("type") == "velocity" for m in c.lines(0.6))
+    c.close()
+    with serial.Serial(rb.endpoints[("dvl", "dvl-serial")].address, 115200, timeout=0.2) as port:
+        port.write(bytes(range(256)) * 8 + b"x" * 1000 + b"\n")
+        port.write(b"wcv\n")
+        end, buf = time.monotonic() + 2, b""
+        while time.monotonic() < end and b"wrv,2.8.0" not in buf:
+            buf += port.read(4096)
+        assert b"wrv,2.8.0" in buf
+    with serial.Serial(rb.endpoints[("altimeter", "ping1d")].address, 115200, timeout=0.2) as port:
+        port.write(b"BR" + bytes(300) + bytes(range(256)) * 4)
+    brping = pytest.importorskip("brping", reason="bluerobotics-ping (test extra) is the vendor's client")
+    p = brping.Ping1D()
+    p.connect_serial(rb.endpoints[("altimeter", "ping1d")].address, 115200)
+    try:
+        assert p.get_distance() is not None
+    finally:
+        p.iodev.close()
+    status = {d.name: d.status() for d in rb.bridge.devices if d.name in ("dvl", "altimeter")}
+    assert status["dvl"]["bad_commands"] >= 2 and status["altimeter"]["bytes_skipped"] > 0
