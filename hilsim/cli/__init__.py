@@ -65,6 +65,13 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                         "control stack under test that paces itself by the frames' timestamps)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
     p.add_argument("--endpoints", type=Path, default=None, help="write the endpoints as JSON to this file")
+    p.add_argument("--truth", type=Path, default=None, metavar="FILE",
+                   help="the ground truth CSV (default: truth.csv beside --endpoints, else in the run folder)")
+    p.add_argument("--truth-rate", type=float, default=20.0, metavar="HZ",
+                   help="ground truth rows per simulated second (default 20; 0: every physics tick)")
+    p.add_argument("--summary", type=Path, default=None, metavar="FILE",
+                   help="the run's summary JSON, written at shutdown (default: summary.json beside "
+                        "--endpoints, else in the run folder)")
     p.add_argument("--bind", default="127.0.0.1", help="address servers listen on (default 127.0.0.1)")
     p.add_argument("--broadcast", default="127.0.0.1",
                    help="destination of UDP status/beacon messages (default 127.0.0.1: stays on this machine)")

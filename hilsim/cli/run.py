@@ -51,6 +51,10 @@ def run_command(args: argparse.Namespace) -> int:
                     seed=args.seed, record=args.record, physics_rate=args.physics_rate,
                     epoch=args.epoch, status_interval=args.status_interval,
                     worker_timeout=args.render_timeout, run_dir=args.pty_dir, time_scale=args.time_scale)
+    beside = args.endpoints.parent if args.endpoints is not None else None  # else: the run folder
+    bridge.truth_path = args.truth or (beside / "truth.csv" if beside is not None else None)
+    bridge.summary_path = args.summary or (beside / "summary.json" if beside is not None else None)
+    bridge.truth_rate = args.truth_rate
     asyncio.run(_serve(bridge, args.duration, args.endpoints))
     return 0
 

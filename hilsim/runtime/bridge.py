@@ -40,6 +40,7 @@ from hilsim.sim.vehicle import Current, Vehicle, load_vehicle_profile
 from hilsim.sim.geometry import Pose
 from hilsim.sim.world import World
 from hilsim.runtime.timeline import Timeline
+from hilsim.runtime.truth import DEFAULT_TRUTH_RATE, RunTruth
 
 log = logging.getLogger("hilsim.bridge")
 T = TypeVar("T")
@@ -93,6 +94,11 @@ class Bridge:
         self._closed = False
         self._wall0 = 0.0
         self._world: World | None = None
+        # the ground truth (hilsim.runtime.truth): files (None: truth.csv, summary.json in the run folder)
+        self.truth_path: Path | None = None
+        self.summary_path: Path | None = None
+        self.truth_rate = DEFAULT_TRUTH_RATE
+        self.truth: RunTruth | None = None
         self.observers = Observers()
 
     # -- building --------------------------------------------------------------
@@ -193,6 +199,8 @@ class Bridge:
         self.faults = Faults(self.devices, self.vehicle.thrusters, self.now, self.publish)
         self.timeline = Timeline(self, doc)
         self.timeline.schedule()
+        self.truth = RunTruth(self, self.truth_path or self.run_dir / "truth.csv",
+                              self.summary_path or self.run_dir / "summary.json", self.truth_rate)
         if self.status_interval > 0:
             self.scheduler.add("status", self.status_interval, self._log_status, priority=100,
                                tolerance=self.status_interval)
@@ -256,6 +264,8 @@ class Bridge:
         if self._closed:
             return
         self._closed = True
+        if self.truth is not None:
+            self.truth.finish()
         for d in reversed(self.devices):
             try:
                 await d.close()
@@ -371,7 +381,8 @@ class Bridge:
         return {"time_s": round(s.time, 3), "depth_m": round(s.depth, 3),
                 "heading_deg": round(math.degrees(s.heading) % 360.0, 1), "late_ticks": late,
                 "skipped_ticks": skipped, "render_restarts": self.worker.restarts,
-                "devices": {d.name: d.status() for d in self.devices}}
+                "devices": {d.name: d.status() for d in self.devices},
+                "contacts": self.truth.contacts if self.truth is not None else 0}
 
     def _log_status(self, t: float) -> None:
         st = self.status()
@@ -380,8 +391,8 @@ class Bridge:
             shown = [f"{k} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
                      for k, v in ds.items() if v and k not in ("device_id",)]
             parts.append(f"{name}({', '.join(shown)})" if shown else name)
-        log.info("t=%.1fs depth %.2f m heading %.1f deg | late ticks %d, skipped %d | %s", st["time_s"],
-                 st["depth_m"], st["heading_deg"], st["late_ticks"], st["skipped_ticks"],
+        log.info("t=%.1fs depth %.2f m heading %.1f deg | contacts %d | late ticks %d, skipped %d | %s",
+                 st["time_s"], st["depth_m"], st["heading_deg"], st["contacts"], st["late_ticks"], st["skipped_ticks"],
                  " ".join(parts) or "no devices")
 
 

@@ -37,6 +37,11 @@ Modbus sensor  ``dropout``                  Keller: P1 reads NaN (its channel er
 Modbus sensor  ``stuck``                    registers keep their last values
 Modbus sensor  ``noise`` (``factor``)       the profile's noise figures x factor
 DDF sonar      ``dropout``                  no frames (the head stops pinging)
+DVL, GNSS,     ``dropout`` / ``stuck`` /    silent / the last report repeated / the
+Ping1D         ``noise`` (``factor``)       profile's noise figures x factor
+DVL            ``lock_loss``                velocity_valid false, beams invalid, altitude -1
+GNSS           ``outage``                   no fix (GGA quality 0, RMC V); the fix returns
+                                            the profile's time to fix after it ends
 CAN device     ``silent``                   its bus carries nothing, either way
 serial device  ``bit_errors`` (``rate``)    bits flip on its line both ways (CRC errors)
 thruster:X     ``fail``                     rotor spins down and stays stopped: thrust 0,

@@ -220,6 +220,59 @@ class TruthRecorder:
         self._file = None
 
 
+class RunTruth:
+    """The ground truth of a bridge's run: the bridge's world under the vehicle's contacts, a
+    :class:`TruthRecorder` on its vehicle loop, contact events published on the observers'
+    ``contact`` topic (``{"t", "event": "start"/"end", "object", "force_N", "speed_m_s"}``), and
+    the summary JSON at :meth:`finish`.
+
+    bridge: a :class:`hilsim.runtime.bridge.Bridge` (uses ``vehicle``, ``world``, ``faults``,
+    ``publish``, ``status()``, ``scenario.name``, ``seed``); truth_path, summary_path: files;
+    rate_hz [Hz]: truth rows per simulated second (0 or None: every physics tick)."""
+
+    def __init__(self, bridge: Any, truth_path: Path | str, summary_path: Path | str | None,
+                 rate_hz: float | None = DEFAULT_TRUTH_RATE) -> None:
+        import time
+
+        self.bridge = bridge
+        self.summary_path = Path(summary_path) if summary_path is not None else None
+        self._wall0 = time.monotonic()
+        bridge.vehicle.world = bridge.world
+        self.events = ContactEvents(on_event=self._publish)
+        self.recorder = TruthRecorder(truth_path, bridge.vehicle, rate_hz, faults=getattr(bridge, "faults", None),
+                                      events=self.events).attach()
+        self.summary: dict[str, Any] | None = None
+
+    @property
+    def contacts(self) -> int:
+        """Contacts so far."""
+        return self.events.count
+
+    def _publish(self, kind: str, ev: Mapping[str, Any]) -> None:
+        self.bridge.publish("contact", {"t": ev["start_s"] if kind == "start" else ev["end_s"], "event": kind,
+                                        "object": ev["object"], "force_N": ev["force_N"],
+                                        "speed_m_s": ev["impact_speed_m_s"]})
+
+    def finish(self) -> dict[str, Any]:
+        """Close the truth file and write the summary JSON (once); returns the summary."""
+        import time
+
+        if self.summary is not None:
+            return self.summary
+        self.recorder.close()
+        st = self.bridge.status()
+        self.summary = run_summary(scenario=self.bridge.scenario.name, seed=self.bridge.seed,
+                                   sim_time_s=self.bridge.vehicle.state.time, wall_s=time.monotonic() - self._wall0,
+                                   late_ticks=st.get("late_ticks", 0), skipped_ticks=st.get("skipped_ticks", 0),
+                                   devices=st.get("devices", {}), recorder=self.recorder)
+        if self.summary_path is not None:
+            write_summary(self.summary_path, self.summary)
+        logging.getLogger("hilsim.truth").info(
+            "ground truth: %s (%d rows), %d contact%s; summary: %s", self.recorder.path, self.recorder.rows,
+            self.events.count, "" if self.events.count == 1 else "s", self.summary_path)
+        return self.summary
+
+
 def run_summary(*, scenario: str, seed: int, sim_time_s: float, wall_s: float, late_ticks: int,
                 skipped_ticks: int, devices: Mapping[str, Any], recorder: TruthRecorder | None,
                 faults: Sequence[Mapping[str, Any]] | None = None) -> dict[str, Any]:

@@ -468,3 +468,42 @@ def test_bad_input_never_stops_the_devices(rb: RunningBridge) -> None:
         p.iodev.close()
     status = {d.name: d.status() for d in rb.bridge.devices if d.name in ("dvl", "altimeter")}
     assert status["dvl"]["bad_commands"] >= 2 and status["altimeter"]["bytes_skipped"] > 0
+
+
+def test_faults_show_on_the_wire(rb: RunningBridge) -> None:
+    """The timeline's faults (through the bridge's fault table, as the timeline and the console inject
+    them): DVL lock loss, GNSS outage at the surface, Ping1D dropout."""
+    faults = rb.bridge.faults
+    assert {"dropout", "stuck", "noise", "lock_loss"} <= set(faults.kinds("dvl"))
+    assert "outage" in faults.kinds("gnss") and "bit_errors" in faults.kinds("altimeter")
+    c = JsonClient(rb.endpoints[("dvl", "dvl-json")].address)
+    try:
+        rb.lt.call(faults.inject, "dvl", "lock_loss", {})
+        c.lines(0.3)
+        vel = [m for m in c.lines(0.6) if m.get("type") == "velocity"]
+        assert vel and not any(m["velocity_valid"] for m in vel)
+        rb.lt.call(faults.clear, "dvl", "lock_loss")
+        c.lines(0.3)
+        vel = [m for m in c.lines(0.5) if m.get("type") == "velocity"]
+        assert vel and all(m["velocity_valid"] for m in vel)
+    finally:
+        c.close()
+    rb.put(0.0)
+    try:
+        rb.lt.call(faults.inject, "gnss", "outage", {})
+        time.sleep(1.3)                                    # past the 1 s time to fix: still none
+        gga = [m for m in _read_sentences(rb.endpoints[("gnss", "nmea-gnss")].address, 0.8) if m.sentence_type == "GGA"]
+        assert gga and all(m.gps_qual == 0 for m in gga)
+    finally:
+        rb.lt.call(faults.clear, "gnss", "outage")
+        rb.put(START[2])
+    brping = pytest.importorskip("brping", reason="bluerobotics-ping (test extra) is the vendor's client")
+    p = brping.Ping1D()
+    p.connect_serial(rb.endpoints[("altimeter", "ping1d")].address, 115200)
+    try:
+        rb.lt.call(faults.inject, "altimeter", "dropout", {})
+        assert p.get_distance() is None                    # silent
+        rb.lt.call(faults.clear, "altimeter", "dropout")
+        assert p.get_distance() is not None
+    finally:
+        p.iodev.close()

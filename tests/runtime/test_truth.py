@@ -146,3 +146,80 @@ def test_the_summary_json_has_the_agreed_keys(tmp_path: Path) -> None:
                                                   "impact_speed_m_s", "max_penetration_m"}
     assert back["truth"] == str(tmp_path / "truth.csv") and back["faults"] == []
     assert not math.isnan(back["contacts"]["events"][0]["impact_speed_m_s"])
+
+
+WIRE_DEVICES = """
+[[devices]]
+name = "vesc_can"
+protocol = "vesc-can"
+transport = "socketcand"
+channel = "can0"
+port = 0
+status_rate_hz = 20
+
+[[devices]]
+name = "depth"
+protocol = "modbus-keller"
+transport = "tcp"
+port = 0
+device_id = 1
+"""
+
+
+def test_on_the_wire_full_down_thrust_stops_at_the_floor_and_the_truth_has_one_contact(tmp_path: Path) -> None:
+    """A client commands full down thrust over VESC CAN (python-can on the socketcand server); the
+    Keller depth it reads over Modbus TCP (pymodbus) stops at the floor; the truth file and the
+    summary written at shutdown record exactly one contact, with the floor."""
+    can = pytest.importorskip("can")
+    cantools = pytest.importorskip("cantools")
+    pymodbus_client = pytest.importorskip("pymodbus.client")
+    import time
+
+    from hilsim.protocols.vesc_can import dbc_path
+    from tests.runtime.bridge_helpers import start_bridge
+
+    text = (ROOT / "scenarios" / "water_tank" / "scenario.toml").read_text()
+    (tmp_path / "scenario.toml").write_text(text[:text.find("[[devices]]")] + WIRE_DEVICES)
+    rho = 998.0
+    bp = start_bridge(tmp_path, str(tmp_path / "scenario.toml"), "--time-scale", "4", "--status-interval", "1")
+    try:
+        ep = {e["device"]: e for e in bp.endpoints}
+        ex = ep["vesc_can"]  # the extra fields are flattened into the entry
+        bus = can.Bus(interface="socketcand", channel=ex["channel"], host=ex["host"], port=int(ex["port"]))
+        host, port = ep["depth"]["address"].rsplit(":", 1)
+        mb = pymodbus_client.ModbusTcpClient(host, port=int(port), timeout=2)
+        assert mb.connect()
+        db = cantools.database.load_file(str(dbc_path()))
+        depths: list[tuple[float, float]] = []
+        t0 = time.monotonic()
+        try:
+            while time.monotonic() - t0 < 30.0:
+                for cid in (5, 6, 7, 8):  # the vertical thrusters push down (+z)
+                    m = db.get_message_by_name(f"VESC{cid}_SET_DUTY")
+                    bus.send(can.Message(arbitration_id=m.frame_id, data=m.encode({"duty": 1.0}), is_extended_id=True))
+                rr = mb.read_holding_registers(0x0002, count=2, device_id=1)
+                p1 = mb.convert_from_registers(rr.registers, mb.DATATYPE.FLOAT32)
+                depths.append((time.monotonic() - t0, (p1 * 1e5 - 101325) / (rho * 9.80665)))
+                now = depths[-1][0]
+                last = [d for t, d in depths if t > now - 0.5]
+                before = [d for t, d in depths if now - 1.0 < t <= now - 0.5]
+                if now > 2.0 and before and abs(np.mean(last) - np.mean(before)) < 0.002:
+                    break  # it stopped (the Keller's noise is a few mm)
+                time.sleep(0.05)
+        finally:
+            bus.shutdown()
+            mb.close()
+    finally:
+        assert bp.stop() == 0, bp.log()[-3000:]
+    print(f"wall {depths[-1][0]:.1f} s, {len(depths)} readings, last {depths[-1][1]:.4f} m")
+    d = np.array([x for _, x in depths])
+    assert d[0] < 1.6 and np.mean(d[-5:]) == pytest.approx(FLOOR - HALF_H, abs=0.02), d[-20:]
+    assert d.max() <= FLOOR - HALF_H + 0.03
+    rows = list(csv.DictReader(open(tmp_path / "truth.csv", newline="")))   # beside the endpoints file
+    contact = [int(r["contact"]) for r in rows]
+    assert sum(1 for a, b in zip(contact, contact[1:]) if (a, b) == (0, 1)) == 1 and contact[-1] == 1
+    assert {r["contact_object"] for r in rows if r["contact"] == "1"} == {"floor"}
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["contacts"]["count"] == 1 and summary["contacts"]["events"][0]["object"] == "floor"
+    assert summary["truth"] == str(tmp_path / "truth.csv") and summary["scenario"] == "water_tank"
+    assert summary["devices"]["vesc_can"] and "contact start" in bp.log() and "contacts 1" in bp.log()
