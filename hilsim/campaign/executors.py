@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import io
+import logging
 import multiprocessing
 import os
 import tarfile
@@ -99,9 +100,9 @@ def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
     if address is None:
         ray_constants.ENABLE_RAY_CLUSTER = False   # read when Ray picks the node's address
         ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
-                 log_to_driver=False, logging_level="WARNING")
+                 log_to_driver=False, logging_level=logging.WARNING)
     else:
-        ray.init(address=address, log_to_driver=False, logging_level="WARNING")
+        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
     return ray
 
 

@@ -138,12 +138,12 @@ def sonar_labels(world: World, sonar: ImagingSonar, pose: Pose, settings: SonarS
     ray, k, share = _shares(sonar, s, world, rot, dirs_s[hit], ddphi_s[hit], dphi, hits.t[hit], first_obj,
                             hits.normal[hit])
     cell = k * nb + beam[hit][ray]
-    intensity = np.bincount(cell, weights=share, minlength=ns * nb).reshape(ns, nb)
-    label = np.full(ns * nb, -1, dtype=np.int16)
+    intensity: F64 = np.bincount(cell, weights=share, minlength=ns * nb).astype(np.float64).reshape(ns, nb)
+    flat = np.full(ns * nb, -1, dtype=np.int16)
     if cell.size:
         order = np.argsort(share, kind="stable")   # weakest first: of the writes to one cell the last stays
-        label[cell[order]] = first_obj[ray[order]]
-    label = label.reshape(ns, nb)
+        flat[cell[order]] = first_obj[ray[order]]
+    label = flat.reshape(ns, nb)
     material = np.where(label >= 0, mat_of_obj[label], -1).astype(np.int16)
 
     # the shadow: continue each ray through the object it hit first, to the next object behind it
@@ -165,8 +165,8 @@ def sonar_labels(world: World, sonar: ImagingSonar, pose: Pose, settings: SonarS
         if idx.size == 0:
             break
         d = dirs_hit[idx]
-        h2 = world.cast(origin + d * start[:, None], d, t_min=0.0, t_max=room)
-        ok = h2.tri >= 0
+        h2 = world.cast(origin + d * start[:, None], d, t_min=0.0, t_max=float(room.max()))
+        ok = (h2.tri >= 0) & (h2.t <= room)   # beyond the window is no echo
         sel = idx[ok]
         t_now[sel] = start[ok] + h2.t[ok]
         obj_now[sel], tri_now[sel], nrm_now[sel] = h2.obj[ok], h2.tri[ok], h2.normal[ok]

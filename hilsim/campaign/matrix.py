@@ -104,7 +104,7 @@ def scenario_data(c: Campaign, case: Case) -> dict[str, Any] | None:
         if isinstance(found, str):  # checked at load time; a [set] key can create what a matrix key names
             raise ValueError(found)
         table, last = found
-        table[last] = copy.deepcopy(v)  # type: ignore[index]
+        table[last] = copy.deepcopy(v)
     start = case.overrides.get("start")
     if start:
         veh = data.setdefault("vehicle", {})
