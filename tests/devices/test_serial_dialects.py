@@ -227,3 +227,54 @@ def test_witmotion_uart_through_the_bridge(tmp_path: Path) -> None:
             assert len(ref_packets(await asyncio.to_thread(capture, e.address, 0.5))) > 20
 
     asyncio.run(main())
+
+
+def test_bad_input_on_the_serial_dialects_never_stops_them(tmp_path: Path) -> None:
+    """Garbage, floods, cut frames and idle clients on the Keller's pty and its line over TCP,
+    and on the IMU's UART pty: counted and ignored; the next good request is answered and the
+    stream keeps its rate; a stuck sensor streams frozen values."""
+    import random
+
+    async def main() -> None:
+        async with bridge_running(tmp_path, [KELLER, IMU]) as bridge:
+            rng = random.Random(7)
+            pty = endpoint(bridge, "depth", "keller-bus", "pty").address
+            host, port = endpoint(bridge, "depth", "keller-bus", "tcp").address.rsplit(":", 1)
+            idle = [await asyncio.open_connection(host, int(port)) for _ in range(2)]   # never send
+            for _ in range(3):                                                          # garbage floods
+                _, w = await asyncio.open_connection(host, int(port))
+                w.write(rng.randbytes(65536) + keller(250, 48)[:3])                     # ... and a cut frame
+                await w.drain()
+                w.close()
+            await asyncio.to_thread(xfer, pty, rng.randbytes(16384), 0, 0.05)
+            await asyncio.sleep(0.1)
+            assert await asyncio.to_thread(xfer, pty, keller(250, 48), 10) == keller(250, 48, 5, 20, 10, 40, 10, 0)
+            reader, writer = await asyncio.open_connection(host, int(port))
+            writer.write(keller(250, 73, 4))
+            r = await asyncio.wait_for(reader.readexactly(9), 2)
+            assert struct.unpack(">f", r[2:6])[0] == pytest.approx(15.0, abs=0.5)     # TOB1
+            writer.close()
+            for _, w in idle:
+                w.close()
+            uart = endpoint(bridge, "imu", "witmotion-uart", "pty").address
+            junk = rng.randbytes(8192) + b"\xff\xaa\x03" + b"\xff\xaa" + rng.randbytes(100)
+            await asyncio.to_thread(xfer, uart, junk, 0, 0.05)
+            await asyncio.sleep(0.1)
+            cmds = b"".join(bytes([0xFF, 0xAA, reg]) + struct.pack("<H", v)
+                            for reg, v in ((0x69, 0xB588), (0x02, 1 << 3), (0x03, 0x07)))   # angles, 20 Hz
+            await asyncio.to_thread(xfer, uart, cmds, 0, 0.05)
+            await asyncio.sleep(0.3)
+            seen = ref_packets(await asyncio.to_thread(capture, uart, 1.0))
+            assert {k for k, _ in seen} == {0x53} and 15 <= len(seen) <= 25
+            assert len({w for _, w in seen}) > 1                      # live: noise moves the words
+            dev = next(d for d in bridge.devices if d.name == "imu")
+            assert dev.uart.bad_input > 0 and dev.status()["uart_rate_hz"] == 20.0
+            dev.inject_fault("stuck", {})
+            await asyncio.sleep(0.1)
+            seen = ref_packets(await asyncio.to_thread(capture, uart, 0.5))
+            assert len(seen) >= 7 and len({w for _, w in seen}) == 1  # stuck: the same values streamed
+            dev.clear_fault("stuck")
+            keller_dev = next(d for d in bridge.devices if d.name == "depth")
+            assert "internal_errors" not in keller_dev.status()
+
+    asyncio.run(main())
