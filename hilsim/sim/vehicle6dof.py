@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -55,7 +55,43 @@ from hilsim.sim.state import VehicleState
 
 if TYPE_CHECKING:
     from hilsim.sim.thrusters import ThrusterSet
-    from hilsim.sim.vehicle import Current, VehicleProfile
+
+
+class _Dof(Protocol):
+    @property
+    def mass(self) -> float: ...
+
+    @property
+    def linear_damping(self) -> float: ...
+
+    @property
+    def quadratic_damping(self) -> float: ...
+
+
+class VehicleProfile(Protocol):
+    """What the 6-DOF model reads of a :class:`hilsim.sim.vehicle.VehicleProfile`
+    (declared here: ``vehicle`` imports this module, not the other way round)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def params(self) -> Mapping[str, _Dof]: ...
+
+    @property
+    def rigid_mass(self) -> float | None: ...
+
+    @property
+    def hydrostatics(self) -> "Hydrostatics | None": ...
+
+
+class Current(Protocol):
+    """What the model reads of a :class:`hilsim.sim.vehicle.Current`."""
+
+    @property
+    def is_zero(self) -> bool: ...
+
+    def velocity(self, depth: float, time: float) -> tuple[float, float, float]: ...
 
 GRAVITY = 9.80665  # [m/s^2] standard gravity (what ArduPilot and the IMU models use)
 _TWO_PI = 2.0 * math.pi
@@ -111,9 +147,9 @@ class Vehicle6DOF:
     """6-DOF dynamics of one profile (built by ``Vehicle(profile)`` when the profile has
     hydrostatics). :meth:`step` is pure; the interface is :class:`hilsim.sim.vehicle.Vehicle`'s."""
 
-    profile: "VehicleProfile"
+    profile: VehicleProfile
 
-    def __init__(self, profile: "VehicleProfile"):
+    def __init__(self, profile: VehicleProfile):
         hs = profile.hydrostatics
         if hs is None or profile.rigid_mass is None:
             raise ValueError(f"{profile.name}: a 6-DOF model needs [hydrostatics] and [vehicle].mass")
@@ -136,11 +172,6 @@ class Vehicle6DOF:
         self._rb = hs.centre_of_buoyancy
         self._deriv = _make_deriv(self._mass, self._lin, self._quad, m, self._added, self._wb, self._b, self._rb)
 
-    @staticmethod
-    def from_file(path: str) -> "Vehicle6DOF":
-        from hilsim.sim.vehicle import load_vehicle_profile
-        return Vehicle6DOF(load_vehicle_profile(path))
-
     def steady_speed(self, dof: str, force: float) -> float:
         """[m/s | rad/s] still-water speed of a translational DOF where damping balances
         ``force`` [N] (plus W - B in heave), level attitude."""
@@ -152,7 +183,7 @@ class Vehicle6DOF:
         return math.copysign(s, f)
 
     def step(self, state: VehicleState, dt: float, wrench: Sequence[float] | F64,
-             current: "Current | None" = None) -> VehicleState:
+             current: Current | None = None) -> VehicleState:
         """Advance ``state`` by ``dt`` [s] under the body ``wrench`` (6,) (Fx, Fy, Fz [N],
         Mx, My, Mz [N m]) held over the step, in ``current`` (None: still water)."""
         if not dt > 0:
@@ -161,7 +192,7 @@ class Vehicle6DOF:
         return self._step(state, dt, wr, current)
 
     def step_with_thrusters(self, state: VehicleState, dt: float, thrusters: "ThrusterSet",
-                            current: "Current | None" = None) -> VehicleState:
+                            current: Current | None = None) -> VehicleState:
         """One physics tick: the thrusters' full wrench (forces and all three moments: an
         off-centre thruster rolls and pitches the vehicle) at the step's start, held over
         ``dt`` [s]; the rotors are then advanced to the step's end (mutates ``thrusters``)."""
@@ -172,7 +203,7 @@ class Vehicle6DOF:
         return self._step(state, dt, [fx, fy, fz, mx, my, mz], current)
 
     def _step(self, state: VehicleState, dt: float, wr: list[float],
-              current: "Current | None") -> VehicleState:
+              current: Current | None) -> VehicleState:
         """RK4 of the 12 states (see the module doc) with the wrench ``wr`` (6,) held."""
         d = state.__dict__
         flat = d.get("_flat")
