@@ -141,8 +141,10 @@ def sonar_labels(world: World, sonar: ImagingSonar, pose: Pose, settings: SonarS
     intensity: F64 = np.bincount(cell, weights=share, minlength=ns * nb).astype(np.float64).reshape(ns, nb)
     flat = np.full(ns * nb, -1, dtype=np.int16)
     if cell.size:
-        order = np.argsort(share, kind="stable")   # weakest first: of the writes to one cell the last stays
-        flat[cell[order]] = first_obj[ray[order]]
+        strongest = np.zeros(ns * nb)
+        np.maximum.at(strongest, cell, share)
+        win = share == strongest[cell]            # the strongest share of its cell (ties: any of them)
+        flat[cell[win]] = first_obj[ray[win]]
     label = flat.reshape(ns, nb)
     material = np.where(label >= 0, mat_of_obj[label], -1).astype(np.int16)
 

@@ -63,7 +63,7 @@ def label_png(labels: Any, path: Path) -> None:
     on = obj >= 0
     rgb[on] = _PALETTE[obj[on] % len(_PALETTE)]
     rgb[labels.shadow] = _SHADOW
-    Image.fromarray(rgb[::-1].copy(), "RGB").save(path)   # far ranges at the top, like the fan
+    Image.fromarray(rgb[::-1].copy(), "RGB").save(path, compress_level=1)   # far ranges at the top, like the fan
 
 
 def render_chunk(c: Campaign, case: Case, scenario: Path, poses: list[PoseRow], out: Path) -> list[dict[str, Any]]:
@@ -111,12 +111,12 @@ def render_chunk(c: Campaign, case: Case, scenario: Path, poses: list[PoseRow], 
             arrays.update(camera_rgb=cf.rgb, camera_depth=cf.depth, camera_object=cf.object)
         np.savez_compressed(folder / f"{stem}.npz", **arrays)
         if r.png:
-            viz.save_png(viz.sonar_fan_image(f.image, f.azimuths, f.range_min, f.range_max,
-                                             title=f"{case.id} frame {frame}"), folder / f"{stem}.png")
+            viz.sonar_fan_image(f.image, f.azimuths, f.range_min, f.range_max,
+                                title=f"{case.id} frame {frame}").save(folder / f"{stem}.png", compress_level=1)
             label_png(lab, folder / f"{stem}_labels.png")
             files.update(png=f"frames/{case.id}/{stem}.png", labels_png=f"frames/{case.id}/{stem}_labels.png")
             if camera is not None:
-                viz.save_png(viz.camera_image(arrays["camera_rgb"]), folder / f"{stem}_camera.png")
+                viz.camera_image(arrays["camera_rgb"]).save(folder / f"{stem}_camera.png", compress_level=1)
                 files["camera_png"] = f"frames/{case.id}/{stem}_camera.png"
         rows.append({
             "case": case.id, "index": case.index, "key": f"{case.key}-{frame:05d}", "frame": frame,

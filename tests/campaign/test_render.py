@@ -164,3 +164,33 @@ list = [{ position_m = [-1.33, 0.0, 1.5] }, { position_m = [-0.83, 0.2, 1.5], ya
         assert rgb.shape[:2] == obj.shape and (obj == cub).sum() > 100   # the cuboid is in view
         # a pixel labelled with the cuboid shows the cuboid's blue plastic more than the grey floor's
         assert rgb[obj == cub][:, 2].mean() > rgb[obj == world.object_index("floor")][:, 2].mean()
+
+
+def test_each_cell_is_labelled_with_the_object_of_its_strongest_echo(tank: tuple) -> None:
+    """The per-ray echo parts (whose sums the test above holds equal to the sonar's intensity), searched for
+    each cell's strongest one in plain Python."""
+    from hilsim.campaign import labels as L
+
+    sc, world, mount = tank
+    sonar = build_sonar(sc, mount)
+    s = sonar.settings.replace(elevation_rays=40, speckle=False, noise=False, beam_pattern=False)
+    pose = VehicleState(position=np.array([-1.33, 0.0, 1.5]), attitude=np.zeros(3)).pose @ mount.mount
+    lab = sonar_labels(world, sonar, pose, s)
+    dirs_s, ddphi_s, beam, dphi = L.ray_fan(sonar, s)
+    rot = np.asarray(pose.rotation)
+    dirs = dirs_s @ rot.T
+    hits = world.cast(np.tile(pose.position, (len(dirs), 1)), dirs, t_min=s.range_min, t_max=s.range_max)
+    hit = np.flatnonzero(hits.tri >= 0)
+    ray, k, share = L._shares(sonar, s, world, rot, dirs_s[hit], ddphi_s[hit], dphi, hits.t[hit], hits.obj[hit],
+                              hits.normal[hit])
+    best: dict[tuple[int, int], tuple[float, int]] = {}
+    for r_, k_, e in zip(ray.tolist(), k.tolist(), share.tolist()):
+        cell = (k_, int(beam[hit[r_]]))
+        obj = int(hits.obj[hit[r_]])
+        if cell not in best or e > best[cell][0]:
+            best[cell] = (e, obj)
+    expect = np.full(lab.object.shape, -1)
+    for (row, col), (_, obj) in best.items():
+        expect[row, col] = obj
+    assert len(set(best.values())) > 100 and {o for _, o in best.values()} == {world.object_index("floor"), world.object_index("cuboid")}
+    assert np.array_equal(lab.object, expect)
