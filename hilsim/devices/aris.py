@@ -32,7 +32,7 @@ import math
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from hilsim.devices.base import DeviceContext, Endpoint, RenderedFrame, TcpServerDevice
 from hilsim.devices.sonar_pinger import ClientPinger, PingEntry, publish_frame
@@ -93,6 +93,7 @@ class ArisDevice(TcpServerDevice):
         self.pinger = ClientPinger(ctx, name, self.mount, self._send_frames)
         self._udp: asyncio.DatagramTransport | None = None
         self._writer: ArisWriter | None = None
+        self._record_file: BinaryIO | None = None  # the writer is sans-I/O: the file is ours
         self.record_path = self.option_output_path("record") if self.options["record"] else None
 
     def record_to(self, path: Path) -> None:
@@ -108,8 +109,9 @@ class ArisDevice(TcpServerDevice):
         self.every("beacon", interval, self._beacon, priority=30, tolerance=interval)
         self.every("keepalive", 0.25, self._check_keepalive, priority=30, tolerance=0.25)
         if self.record_path is not None:
-            self._writer = ArisWriter(self.record_path, {"SN": int(self.options["serial_number"]),
-                                                         "strHeaderID": f"hilsim {self.name}".encode()[:255]})
+            self._record_file = open(self.record_path, "wb")
+            self._writer = ArisWriter(self._record_file, {"SN": int(self.options["serial_number"]),
+                                                          "strHeaderID": f"hilsim {self.name}".encode()[:255]})
             self._set_recording(None)
         return [Endpoint(self.name, self.protocol, "tcp", f"{host}:{port}",
                          {"beacon": f"udp {self.ctx.broadcast}:{self.options['beacon_port']}",
@@ -121,6 +123,9 @@ class ArisDevice(TcpServerDevice):
             self._writer.close()
             log.info("%s: recorded %d frames to %s", self.name, self.counters["recorded"], self.record_path)
             self._writer = None
+        if self._record_file is not None:
+            self._record_file.close()
+            self._record_file = None
 
     def status(self) -> dict[str, float]:
         return {**super().status(), "renders": float(self.pinger.renders), "busy_skips": float(self.pinger.busy_skips),
@@ -163,8 +168,6 @@ class ArisDevice(TcpServerDevice):
     def on_data(self, client: Client, data: bytes) -> None:
         reader: ar.CommandReader = client.state["reader"]
         for ev in drain(reader, data, limit=10_000):
-            if ev is None:  # the reader's own "no more" (older contract)
-                break
             if isinstance(ev, (ar.BadCommand, ar.Oversize)):
                 self.counters["bad_commands"] += 1
                 continue

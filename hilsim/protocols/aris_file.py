@@ -23,7 +23,6 @@ opening files is the caller's.
 from __future__ import annotations
 
 import io
-import os
 from dataclasses import dataclass
 from typing import BinaryIO, Iterator, Mapping
 
@@ -137,19 +136,16 @@ class ArisWriter:
     """Write an .aris recording frame by frame; FrameCount is patched on close().
 
     sink: a seekable binary stream opened for writing (``open(path, "wb")``: the
-    caller opens it; :meth:`close` flushes it and leaves it open) or, for the
-    ARIS device until it opens its recording itself, a path (opened and closed here).
+    caller opens it; :meth:`close` patches the header, flushes and leaves it open).
     file_fields: extra file-header fields (SN, strHeaderID ...). Every frame of
     one file must have the same geometry. Frames are written with
     ``ReorderedSamples = 1`` and ``Version = DDF_05``.
     """
 
-    def __init__(self, sink: BinaryIO | str | os.PathLike[str],
-                 file_fields: Mapping[str, HeaderValue] | None = None) -> None:
+    def __init__(self, sink: BinaryIO, file_fields: Mapping[str, HeaderValue] | None = None) -> None:
         self.file_fields: dict[str, HeaderValue] = dict(file_fields or {})
         encode_file_header(self.file_fields)  # validate early
-        self._owned = isinstance(sink, (str, os.PathLike))
-        self._f: BinaryIO | None = open(sink, "wb") if isinstance(sink, (str, os.PathLike)) else sink
+        self._f: BinaryIO | None = sink
         self._f.write(encode_file_header(self.file_fields))
         self.n_frames = 0
         self.shape: tuple[int, int] | None = None
@@ -184,8 +180,6 @@ class ArisWriter:
         if self._f is None:
             return
         self.flush()
-        if self._owned:
-            self._f.close()
         self._f = None
 
     def __enter__(self) -> "ArisWriter":

@@ -90,7 +90,7 @@ def _drain(d: Driven, limit: int) -> Events:
             ev = d.decoder.next_event()
             if send is not None and (data := send()):
                 out.append(Reply(data))
-            if ev is NEED_DATA or ev is None:  # None: aris.CommandReader until it returns NEED_DATA
+            if ev is NEED_DATA:
                 return out
             out.append(ev if d.then is None else (ev, d.then(ev)))
             if isinstance(ev, ddf.EndOfStream):

@@ -184,7 +184,7 @@ def _drain(r: ar.CommandReader) -> list:
     out = []
     for _ in range(100_000):
         ev = r.next_event()
-        if ev is None:
+        if ev is ar.NEED_DATA:
             return out
         out.append(ev)
     raise AssertionError("reader did not settle")

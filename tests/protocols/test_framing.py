@@ -130,7 +130,7 @@ def test_aris_crafted_input_byte_at_a_time_costs_linear_parse_work(monkeypatch):
     parse = Counter(ar.parse_command, 2 * len(ARIS_CRAFTED), lambda payload, *_, **__: 1)  # limit: parses
     monkeypatch.setattr(ar.commands, "parse_command", parse)  # where CommandReader looks it up
     r = ar.CommandReader()
-    events = feed(r, None, ARIS_CRAFTED, 1)
+    events = feed(r, ar.NEED_DATA, ARIS_CRAFTED, 1)
     assert events and all(isinstance(e, (ar.Oversize, ar.Junk, ar.BadCommand)) for e in events)
     assert parse.calls <= len(ARIS_CRAFTED)  # each offset parsed at most once
     r.receive_data(ARIS_VALID * 300)  # past a frame that may still wait for max_length bytes
@@ -160,7 +160,7 @@ CASES = {
     "vesc-uart": (vu.PacketDecoder, vu.NEED_DATA, VESC_CRAFTED),
     "vesc-uart-short": (vu.PacketDecoder, vu.NEED_DATA, VESC_CRAFTED_SHORT),
     "vrcsr": (vr.PacketDecoder, vr.NEED_DATA, VRCSR_CRAFTED),
-    "aris-commands": (ar.CommandReader, None, ARIS_CRAFTED),
+    "aris-commands": (ar.CommandReader, ar.NEED_DATA, ARIS_CRAFTED),
 }
 
 
@@ -206,7 +206,7 @@ def test_aris_in_sync_frame_is_not_parsed_until_complete(monkeypatch):
     monkeypatch.setattr(ar.commands, "parse_command", parse)  # where CommandReader looks it up
     r = ar.CommandReader()
     wire = ar.encode_command(ar.SetAcoustics(ar.AcousticSettings(cookie=5)))
-    assert feed(r, None, wire[:-1], 1) == [] and parse.calls == 0
+    assert feed(r, ar.NEED_DATA, wire[:-1], 1) == [] and parse.calls == 0
     r.receive_data(wire[-1:])
     assert r.events() == [ar.SetAcoustics(ar.AcousticSettings(cookie=5))] and parse.calls == 1
 
@@ -361,7 +361,7 @@ def test_vrcsr_decodes_like_the_reference(data, sizes, responses):
 @SAME
 @given(streams(ARIS_PIECES), cuts, st.sampled_from([ar.MAX_COMMAND_LENGTH, 50, 3]))
 def test_aris_command_reader_decodes_like_the_reference(data, sizes, max_length):
-    same_as_reference(lambda: ar.CommandReader(max_length), lambda: NaiveCommandReader(max_length), None,
+    same_as_reference(lambda: ar.CommandReader(max_length), lambda: NaiveCommandReader(max_length), ar.NEED_DATA,
                       data, sizes, lambda r: (r.errors, r.commands, r._synced))
 
 

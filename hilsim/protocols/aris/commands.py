@@ -27,6 +27,7 @@ from hilsim.protocols.aris.constants import (
 )
 from hilsim.protocols.aris.settings import AcousticSettings
 from hilsim.protocols.aris_pb import aris_commands_pb2 as pb_cmd
+from hilsim.protocols.codec import NEED_DATA, NeedData
 
 
 
@@ -225,7 +226,7 @@ def parse_command(payload: bytes, strict: bool = False) -> CommandEvent:
 class CommandReader:
     """Incremental decoder of the ARIS command channel (sonar side).
 
-    ``receive_data(bytes)`` then ``next_event()`` until None. In sync, each
+    ``receive_data(bytes)`` then ``next_event()`` until NEED_DATA. In sync, each
     frame is a 4-byte big-endian length and that many payload bytes. A length
     above ``max_length`` gives :class:`Oversize`, a payload that is not a valid
     Command gives :class:`BadCommand`; either drops the reader out of sync. Out
@@ -278,18 +279,21 @@ class CommandReader:
         self._buf += data
 
     def events(self) -> list[CommandEvent]:
+        """Every event available now (drains the reader)."""
         out: list[CommandEvent] = []
-        while (ev := self.next_event()) is not None:
+        while (ev := self.next_event()) is not NEED_DATA:
             out.append(ev)
         return out
 
-    def next_event(self) -> CommandEvent | None:
+    def next_event(self) -> CommandEvent | NeedData:
         if self._pending:
             return self._pending.pop(0)
-        ev = self._next_synced() if self._synced else self._resync()
+        ev = self._next_synced() if self._synced else self._resync()  # None: nothing more in the buffer
+        if ev is None:
+            return NEED_DATA
         if isinstance(ev, (BadCommand, Oversize)):
             self.errors += 1
-        elif ev is not None and not isinstance(ev, Junk):
+        elif not isinstance(ev, Junk):
             self.commands += 1
         return ev
 
