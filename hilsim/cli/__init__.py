@@ -87,6 +87,13 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
                    help="folder for the emulated serial ports' symlinks (default: a fresh temporary folder)")
     p.add_argument("--render-timeout", type=float, default=10.0,
                    help="seconds a frame may take before the render worker is deemed hung and restarted")
+    p.add_argument("--console", type=int, default=0, metavar="PORT",
+                   help="port of the live browser console on the bind address (default 0: a free port)")
+    p.add_argument("--no-console", dest="console", action="store_const", const=None, help="no console")
+    p.add_argument("--record-mcap", type=Path, default=None, metavar="FILE.mcap",
+                   help="record the run for Foxglove/Lichtblick: sonar, camera, ground truth, readings, commands")
+    p.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                   help="serve the same channels live over the Foxglove WebSocket protocol (default port 8765)")
 
 
 def _add_record(sub: argparse._SubParsersAction) -> None:

@@ -30,6 +30,8 @@ async def _serve(bridge: Bridge, duration: float | None, endpoints_file: object)
     try:
         endpoints = await bridge.start()
         print(endpoints_table(endpoints), flush=True)
+        if bridge.attached is not None and bridge.attached.url:
+            print(f"console: {bridge.attached.url}", flush=True)
         if endpoints_file is not None:
             write_endpoints(endpoints_file, endpoints)  # type: ignore[arg-type]
         mode = ("fast (virtual clock)" if bridge.fast else "real time" if bridge.time_scale == 1.0
@@ -50,7 +52,8 @@ def run_command(args: argparse.Namespace) -> int:
     bridge = Bridge(find_scenario(args.scenario), fast=args.fast, bind=args.bind, broadcast=args.broadcast,
                     seed=args.seed, record=args.record, physics_rate=args.physics_rate,
                     epoch=args.epoch, status_interval=args.status_interval,
-                    worker_timeout=args.render_timeout, run_dir=args.pty_dir, time_scale=args.time_scale)
+                    worker_timeout=args.render_timeout, run_dir=args.pty_dir, time_scale=args.time_scale,
+                    console=args.console, record_mcap=args.record_mcap, foxglove=args.foxglove)
     beside = args.endpoints.parent if args.endpoints is not None else None  # else: the run folder
     bridge.truth_path = args.truth or (beside / "truth.csv" if beside is not None else None)
     bridge.summary_path = args.summary or (beside / "summary.json" if beside is not None else None)

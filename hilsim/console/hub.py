@@ -110,6 +110,8 @@ class Hub:
         self._tick_task: asyncio.Task[None] | None = None
         self._track_handle: Any = None
         self.ticks = 0
+        #: more rows for the endpoints table: name -> status() (the console itself, the recorder)
+        self.extra_status: dict[str, Callable[[], Mapping[str, Any]]] = {}
 
     # -- subscriptions ----------------------------------------------------------
     def start(self) -> None:
@@ -223,6 +225,11 @@ class Hub:
                 devices[d.name] = {k: _num(v) for k, v in d.status().items()}
             except Exception as exc:  # noqa: BLE001 - one device's status bug shows as text
                 devices[d.name] = {"status_error": str(exc)[:80]}
+        for name, fn in self.extra_status.items():
+            try:
+                devices[name] = {k: _num(v) for k, v in fn().items()}
+            except Exception as exc:  # noqa: BLE001
+                devices[name] = {"status_error": str(exc)[:80]}
         readings = {dev: {k: _num(v) for k, v in r.items() if k != "t" and _num(v) is not None}
                     for dev, r in self.readings.items()}
         try:

@@ -1,7 +1,7 @@
 """The console's web server: one page, its assets, and one WebSocket per page.
 
-Built on aiohttp: its server runs on an asyncio loop it is handed (``AppRunner`` +
-``TCPSite``), so it shares the bridge's loop with every link and the scheduler and needs
+Built on aiohttp: its server runs on the asyncio loop it is started in (``AppRunner`` and a
+listening socket of our own), so it shares the bridge's loop with every link and the scheduler and needs
 no thread, no second loop and no signal handling of its own (uvicorn wants to own the
 loop and the signals; Starlette would need it). One package gives HTTP, WebSockets with
 back-pressure (``await send_bytes`` waits while the socket's buffer is full) and a test
@@ -11,9 +11,10 @@ Exposure: it binds the bridge's address (127.0.0.1 unless ``--bind``). It serves
 assets packed in ``hilsim/console/static`` (looked up by name in a fixed table, never a
 path from the URL), sends a Content-Security-Policy that lets the page load nothing and
 connect nowhere but this server, and refuses WebSockets whose ``Origin`` is another site
-(so a web page elsewhere cannot drive the bridge through a browser). At most
-``max_pages`` WebSockets at once (503 beyond, logged at most once a second), each
-message at most 1 kB, commands at most 20 a second per page.
+(so a web page elsewhere cannot drive the bridge through a browser). Bounded like the
+TCP servers: at most ``max_connections`` connections (closed at once beyond; idle ones are
+closed after 15 s) and ``max_pages`` WebSockets (503 beyond), refusals logged at most once
+a second; each page message at most 1 kB, commands at most 20 a second per page.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import json
 import logging
 import time
 from importlib import resources
-from typing import Any
+from typing import Any, Callable
 
 from aiohttp import WSMsgType, web
 
@@ -91,12 +92,16 @@ class Console:
     """The console of a running bridge: ``await start()`` -> endpoint, ``await close()``."""
 
     def __init__(self, bridge: Any, *, port: int = 0, host: str | None = None, max_pages: int = 8,
-                 camera: Any | None = None) -> None:
+                 max_connections: int = 32, camera: Any | None = None) -> None:
         self.bridge = bridge
         self.host = host or getattr(bridge, "bind", "127.0.0.1")
         self.port = int(port)
         self.max_pages = int(max_pages)
+        self.max_connections = max(int(max_connections), self.max_pages + 1)
+        self.refused_connections = 0
+        self._server: asyncio.AbstractServer | None = None
         self.hub = Hub(bridge, camera)
+        self.hub.extra_status["console"] = self.status
         self.refused_pages = 0
         self.bad_messages = 0
         self.last_error = ""
@@ -123,18 +128,26 @@ class Console:
         self.hub.start()
         self._runner = web.AppRunner(self.app(), access_log=None, keepalive_timeout=15.0)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port, shutdown_timeout=1.0, backlog=32)
-        await site.start()
-        server = site._server  # the asyncio server, for the port picked
-        if server is not None and getattr(server, "sockets", None):
-            self.port = int(server.sockets[0].getsockname()[1])
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(self._accept(self._runner.server), self.host, self.port, backlog=32)
+        self.port = int(self._server.sockets[0].getsockname()[1])
         log.info("console at %s", self.url)
         return self.url
+
+    def _accept(self, server: Any) -> Callable[[], asyncio.BaseProtocol]:
+        """aiohttp's protocol for each connection, up to ``max_connections`` at once; beyond, the
+        connection is closed at once (and the refusal logged at most once a second). aiohttp
+        closes a connection idle for 15 s, before or between requests."""
+        def factory() -> asyncio.BaseProtocol:
+            if len(server.connections) >= self.max_connections:
+                return _Refuse(self)
+            return server()  # type: ignore[no-any-return]
+        return factory
 
     def status(self) -> dict[str, Any]:
         pages = list(self.hub.pages)
         return {"clients": len(pages), "sent": sum(p.sent for p in pages),
-                "dropped": sum(p.dropped for p in pages), "refused": self.refused_pages,
+                "dropped": sum(p.dropped for p in pages), "refused": self.refused_pages + self.refused_connections,
                 "bad_messages": self.bad_messages, **({"last_error": self.last_error} if self.last_error else {})}
 
     # -- handlers -----------------------------------------------------------------
@@ -235,11 +248,35 @@ class Console:
 
     async def close(self) -> None:
         await self.hub.close()
+        if self._server is not None:
+            self._server.close()
         for p in list(self.hub.pages):
             await p.ws.close()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if self._server is not None:
+            await self._server.wait_closed()
+            self._server = None
+
+
+class _Refuse(asyncio.Protocol):
+    """A connection over the console's limit: closed at once."""
+
+    def __init__(self, console: Console) -> None:
+        self.console = console
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        c = self.console
+        c.refused_connections += 1
+        now = time.monotonic()
+        if now - c._refuse_logged >= 1.0:
+            c._refuse_logged = now
+            peer = transport.get_extra_info("peername")
+            who = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+            log.warning("console: refused %s: client limit %d reached (%d refused so far)", who,
+                        c.max_connections, c.refused_connections + c.refused_pages)
+        transport.close()
 
 
 @web.middleware

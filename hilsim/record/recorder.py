@@ -66,16 +66,37 @@ class Recorder:
         self._unsub: list[Callable[[], None]] = []
         self._handles: list[Any] = []
         self._epoch = 0.0
+        self._open = False
+        self._pending: list[tuple[Callable[[str, Mapping[str, Any]], None], str, Mapping[str, Any]]] = []
         self._closed = False
 
     # -- lifecycle ------------------------------------------------------------------
+    def subscribe(self) -> None:
+        """Listen to the bridge's topics now (before the devices start: a reading served at start
+        counts); messages wait in memory until :meth:`start` opens the sinks."""
+        obs = self.bridge.observers
+        for pattern, fn in (("sonar/*", self._on_sonar), ("reading/*", self._on_json), ("command/*", self._on_json),
+                            ("fault", self._on_json), ("contact", self._on_json), ("camera/*", self._on_camera)):
+            self._unsub.append(obs.subscribe(pattern, self._early(fn)))
+
+    def _early(self, fn: Callable[[str, Mapping[str, Any]], None]) -> Callable[[str, Mapping[str, Any]], None]:
+        def listener(topic: str, msg: Mapping[str, Any]) -> None:
+            if self._open:
+                fn(topic, msg)
+            elif len(self._pending) < 10000:
+                self._pending.append((fn, topic, msg))
+        return listener
+
     def start(self) -> list[Any]:
-        """Open the sinks, subscribe, log the static scene; returns the endpoints (the server)."""
+        """Open the sinks (the epoch is final now), log the static scene and what waited; returns
+        the endpoints (the file, the server)."""
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
         from hilsim.devices.base import Endpoint
 
+        if not self._unsub:
+            self.subscribe()
         self._epoch = float(self.bridge.wall_time(0.0))
         self._make_channels()
         endpoints: list[Any] = []
@@ -84,6 +105,7 @@ class Recorder:
             opts = MCAPWriteOptions(compression=MCAPCompression.Lz4, compression_threads=0)
             self.writer = foxglove.open_mcap(self.mcap_path, allow_overwrite=self.allow_overwrite,
                                              context=self.ctx, writer_options=opts)
+            endpoints.append(Endpoint("mcap", "mcap", "file", str(self.mcap_path)))
             self.writer.write_metadata("hilsim", {"scenario": str(self.bridge.scenario.name),
                                                   "epoch_s": repr(self._epoch), "seed": str(self.bridge.seed),
                                                   "log_time": "epoch_s + simulation time"})
@@ -94,11 +116,11 @@ class Recorder:
             endpoints.append(Endpoint("foxglove", "foxglove-ws", "tcp", f"{host}:{self.server.port}",
                                       {"url": f"ws://{host}:{self.server.port}"}))
             log.info("Foxglove WebSocket server on ws://%s:%d", host, self.server.port)
-        obs = self.bridge.observers
-        for pattern, fn in (("sonar/*", self._on_sonar), ("reading/*", self._on_json), ("command/*", self._on_json),
-                            ("fault", self._on_json), ("contact", self._on_json), ("camera/*", self._on_camera)):
-            self._unsub.append(obs.subscribe(pattern, fn))
         self._log_static(0.0)
+        self._open = True
+        for fn, topic, msg in self._pending:
+            fn(topic, msg)
+        self._pending.clear()
         self._handles.append(self.bridge.every("record-pose", 1.0 / self.pose_rate_hz, self._on_pose,
                                                priority=90, tolerance=1.0))
         if self.camera is not None and self.camera.mounts and self.writer is not None:
@@ -244,6 +266,13 @@ class Recorder:
         name = {"fault": "/faults", "contact": "/contacts"}.get(topic, "/" + topic)
         t = float(msg.get("t", self.bridge.now()))
         self._log(name, self._channel(name), jsonable(dict(msg)), t)
+
+    def status(self) -> dict[str, Any]:
+        """Counters for the console's endpoints table: messages logged, topics, the file's size."""
+        out: dict[str, Any] = {"sent": sum(self.counts.values()), "topics": len(self.counts)}
+        if self.mcap_path is not None and self.mcap_path.exists():
+            out["mcap_bytes"] = self.mcap_path.stat().st_size
+        return out
 
     # -- shutdown ------------------------------------------------------------------------
     def close(self) -> None:

@@ -61,7 +61,8 @@ class Bridge:
                  broadcast: str = LOOPBACK, seed: int | None = None, record: Path | str | None = None,
                  physics_rate: float = DEFAULT_PHYSICS_RATE, run_dir: Path | str | None = None,
                  epoch: float | None = None, status_interval: float = 5.0,
-                 worker_timeout: float = 10.0, time_scale: float = 1.0) -> None:
+                 worker_timeout: float = 10.0, time_scale: float = 1.0, console: int | None = None,
+                 record_mcap: Path | str | None = None, foxglove: int | None = None) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.fast = fast
         self.bind = bind
@@ -100,6 +101,9 @@ class Bridge:
         self.truth_rate = DEFAULT_TRUTH_RATE
         self.truth: RunTruth | None = None
         self.observers = Observers()
+        # the console (port, 0: free), an MCAP recording, the Foxglove server (hilsim.console.prepare)
+        self.console_port, self.record_mcap, self.foxglove_port = console, record_mcap, foxglove
+        self.attached: Any = None
 
     # -- building --------------------------------------------------------------
 
@@ -182,6 +186,10 @@ class Bridge:
             takers[0].record_to(self.record)
         if any(d.needs_renderer for d in self.devices):
             await self.worker.start()
+        if (self.console_port, self.record_mcap, self.foxglove_port) != (None, None, None):
+            from hilsim.console import prepare  # listening before the devices start: their first readings count
+            self.attached = prepare(self, console_port=self.console_port, record_mcap=self.record_mcap,
+                                    foxglove_port=self.foxglove_port)
         self.vehicle.attach(self.scheduler)
         try:
             for d in self.devices:
@@ -201,6 +209,12 @@ class Bridge:
         self.timeline.schedule()
         self.truth = RunTruth(self, self.truth_path or self.run_dir / "truth.csv",
                               self.summary_path or self.run_dir / "summary.json", self.truth_rate)
+        if self.attached is not None:
+            try:
+                self.endpoints.extend(await self.attached.start())
+            except (OSError, RuntimeError) as exc:  # a port in use, an unwritable file
+                await self.close()
+                raise ValueError(f"cannot start the console/recorder: {exc}") from None
         if self.status_interval > 0:
             self.scheduler.add("status", self.status_interval, self._log_status, priority=100,
                                tolerance=self.status_interval)
@@ -266,6 +280,8 @@ class Bridge:
         self._closed = True
         if self.truth is not None:
             self.truth.finish()
+        if self.attached is not None:
+            await self.attached.close()
         for d in reversed(self.devices):
             try:
                 await d.close()
@@ -328,6 +344,16 @@ class Bridge:
         frame, seconds, altitude = await self.worker.render_sonar(path, pose, settings, state.time, frame_index,
                                                                   state.position, budget_s=budget_s)
         return RenderedFrame(frame, state, seconds, altitude, rays=frame.settings.elevation_rays)
+
+    async def render_camera(self, mount: str, *, max_width: int = 0) -> tuple[Any, VehicleState]:
+        """((h, w, 3) uint8 picture, state) of camera ``mount`` now, rendered in the worker at most
+        ``max_width`` px wide (0: the profile's size); raises RenderFailed."""
+        state, m = self.vehicle.state, self.scenario.sensor(mount)
+        pose = state.pose @ m.mount
+        path = str(find_profile("cameras", m.profile, base=self.scenario.folder))
+        rgb = await self.worker.call("camera", path, np.asarray(pose.position), np.asarray(pose.rotation),
+                                     state.time, int(max_width))
+        return rgb, state
 
     async def altitude(self) -> float:
         """[m] distance from the vehicle straight down to the first surface (inf if none)."""

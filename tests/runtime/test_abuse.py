@@ -48,7 +48,7 @@ RESETS = 20            # connects per server that send half a message, then rese
 @pytest.fixture(scope="module")
 def bridge(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("abuse")
-    b = start_bridge(tmp, "--status-interval", "1")
+    b = start_bridge(tmp, "--status-interval", "1", "--no-console")  # the console: tests/console/test_server.py
     yield b
     b.stop()
 

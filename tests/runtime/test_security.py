@@ -127,7 +127,7 @@ def test_bind_moves_every_tcp_server_and_udp_still_goes_to_loopback(tmp_path, ud
     b = start_bridge(tmp_path, str(path), "--bind", alias, "--status-interval", "0")
     try:
         servers = [e for e in b.endpoints if e["transport"] in ("tcp", "socketcand")]
-        assert len(servers) == 6
+        assert len(servers) == 8  # seven devices (the DVL too) and the console
         wrong = [e["device"] for e in servers if not e["address"].startswith(alias + ":")]
         assert not wrong, f"devices ignoring --bind in the endpoints table: {wrong}"
         for e in servers:

@@ -267,6 +267,7 @@ function sonarView(device) {
   const box = el("div", { class: "sonar" });
   const canvas = el("canvas", { id: `sonar-${device}`, width: "440", height: "340", "data-frames": "0" });
   const info = el("div", { class: "small", id: `sonar-${device}-info` });
+  canvas.style.display = "none";               // shown with the first frame
   box.append(el("div", {}, device), canvas, info);
   $("sonar-list").append(box);
   s = sonars[device] = { canvas, ctx: canvas.getContext("2d"), info, key: "", lut: null, geo: null };
@@ -302,6 +303,7 @@ function niceStep(r) { for (const s of [0.25, 0.5, 1, 2, 5, 10, 20, 50, 100]) if
 
 function drawSonar(h, img) {
   const s = sonarView(h.device);
+  s.canvas.style.display = "";
   const key = `${h.shape}|${h.range_min}|${h.range_max}|${h.azimuths[0]}|${h.azimuths[h.azimuths.length - 1]}`;
   if (key !== s.key) { buildLut(s, h); s.key = key; }
   const d = s.image.data, lut = s.lut;

@@ -1,0 +1,182 @@
+"""What open console pages cost the bridge: DDF stream and Modbus latency without and with pages.
+
+Starts ``hilsim run`` on the water tank (real-time clock, console on a free port) and measures
+over ``--seconds``, first with no page open, then with ``--pages`` pages open (WebSocket clients in
+another process that behave like the page: they show the camera and read everything):
+  * 8 DDF clients: frames/s per client, ping-to-client latency p50 / p99 [ms] (as bench_bridge);
+  * a Modbus TCP poller reading the Keller's P1 at 100 Hz: round trip p50 / p99 [ms];
+  * with pages: what each page received (states/s, sonar frames/s, camera pictures/s, drops).
+Prints figures; never passes or fails.
+Usage: python benchmarks/bench_console.py [--seconds 10] [--pages 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+FRAME = 1024 + 96 * 512
+READ_P1 = struct.pack(">HHHBBHH", 1, 0, 6, 1, 3, 0x0002, 2)   # tid 1, unit 1, fc 3, P1
+REPLY = 6 + 1 + 1 + 1 + 4
+
+
+def recv_exact(s: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        c = s.recv(n - len(buf))
+        if not c:
+            raise EOFError
+        buf += c
+    return bytes(buf)
+
+
+def ddf_clients(host: str, port: int, n: int, seconds: float) -> dict:
+    results: list[list[tuple[float, float]]] = [[] for _ in range(n)]
+    stop = time.monotonic() + seconds
+
+    def client(k: int) -> None:
+        s = socket.create_connection((host, port), timeout=10)
+        recv_exact(s, 1024)
+        while time.monotonic() < stop:
+            raw = recv_exact(s, FRAME)
+            arrived = time.time()
+            us = struct.unpack_from("<Q", raw, 4)[0]
+            results[k].append((arrived, arrived - us / 1e6))
+        s.close()
+
+    ts = [threading.Thread(target=client, args=(k,)) for k in range(n)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    rates = [(len(r) - 1) / (r[-1][0] - r[0][0]) for r in results if len(r) > 2]
+    lat = np.array([x[1] for r in results for x in r[1:]]) * 1e3
+    return {"rate_min": min(rates), "rate_mean": float(np.mean(rates)), "p50": float(np.percentile(lat, 50)),
+            "p99": float(np.percentile(lat, 99))}
+
+
+def modbus_poller(addr: tuple[str, int], seconds: float, out: list[float]) -> None:
+    s = socket.create_connection(addr)
+    s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    end = time.monotonic() + seconds
+    t_next = time.perf_counter()
+    while time.monotonic() < end:
+        t0 = time.perf_counter()
+        s.sendall(READ_P1)
+        recv_exact(s, REPLY)
+        out.append(time.perf_counter() - t0)
+        t_next += 0.01
+        time.sleep(max(0.0, t_next - time.perf_counter()))
+    s.close()
+
+
+def measure(host: str, ddf_port: int, modbus: tuple[str, int], seconds: float) -> dict:
+    rtts: list[float] = []
+    th = threading.Thread(target=modbus_poller, args=(modbus, seconds, rtts))
+    th.start()
+    r = ddf_clients(host, ddf_port, 8, seconds)
+    th.join()
+    ms = np.array(rtts) * 1e3
+    r.update(modbus_p50=float(np.percentile(ms, 50)), modbus_p99=float(np.percentile(ms, 99)))
+    return r
+
+
+async def _pages(url: str, n: int, seconds: float) -> list[dict]:
+    import aiohttp
+
+    async def one() -> dict:
+        got = {"state": 0, "sonar": 0, "camera": 0, "bytes": 0}
+        async with aiohttp.ClientSession() as s, s.ws_connect(url + "ws", max_msg_size=0) as ws:
+            await ws.send_str(json.dumps({"op": "camera", "show": True}))
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                try:
+                    msg = await asyncio.wait_for(ws.receive(), max(0.01, end - time.monotonic()))
+                except asyncio.TimeoutError:
+                    break
+                if msg.type == aiohttp.WSMsgType.TEXT:
+                    got["bytes"] += len(msg.data)
+                    if '"type":"state"' in msg.data[:20]:
+                        got["state"] += 1
+                elif msg.type == aiohttp.WSMsgType.BINARY:
+                    got["bytes"] += len(msg.data)
+                    (k,) = struct.unpack(">I", msg.data[:4])
+                    got[json.loads(msg.data[4:4 + k])["type"]] += 1
+                else:
+                    break
+        return got
+
+    return list(await asyncio.gather(*(one() for _ in range(n))))
+
+
+def page_main(url: str, n: int, seconds: float) -> None:
+    """Child process: ``n`` page-like WebSocket clients for ``seconds``; prints what they got as JSON."""
+    print(json.dumps(asyncio.run(_pages(url, n, seconds))), flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--pages", type=int, default=3)
+    ap.add_argument("--page-client", nargs=3, metavar=("URL", "N", "SECONDS"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.page_client:
+        page_main(args.page_client[0], int(args.page_client[1]), float(args.page_client[2]))
+        return
+    tmp = Path(tempfile.mkdtemp())
+    ep = tmp / "ep.json"
+    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", "--endpoints", str(ep), "--log-level", "WARNING",
+                             "--status-interval", "0", "--console", "0"], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while not ep.exists():
+            if proc.poll() is not None:
+                raise SystemExit("bridge failed to start")
+            time.sleep(0.05)
+        eps = json.loads(ep.read_text())
+        ddf = next(x for x in eps if x["protocol"] == "ddf-stream")
+        host, port = ddf["address"].rsplit(":", 1)
+        mb = next(x for x in eps if x["device"] == "depth" and x["transport"] == "tcp")
+        mhost, mport = mb["address"].rsplit(":", 1)
+        url = next(x for x in eps if x["device"] == "console")["url"]
+        time.sleep(2.0)
+        print(f"water tank, DDF at {ddf['frame_rate_hz']} Hz to 8 clients, Modbus P1 at 100 Hz; "
+              f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
+        base = measure(host, int(port), (mhost, int(mport)), args.seconds)
+        pages = subprocess.Popen([sys.executable, __file__, "--page-client", url, str(args.pages),
+                                  str(args.seconds + 3.0)], stdout=subprocess.PIPE, text=True)
+        time.sleep(1.5)
+        with_pages = measure(host, int(port), (mhost, int(mport)), args.seconds)
+        got = json.loads(pages.communicate(timeout=60)[0] or "[]")
+        for label, r in (("no page", base), (f"{args.pages} pages", with_pages)):
+            print(f"  {label:>8}: {r['rate_mean']:.1f} frames/s per DDF client (slowest {r['rate_min']:.1f}); "
+                  f"ping-to-client p50 {r['p50']:.1f} ms, p99 {r['p99']:.1f} ms; Modbus p50 {r['modbus_p50']:.2f} ms, "
+                  f"p99 {r['modbus_p99']:.2f} ms")
+        print(f"  pages vs none: DDF p99 {100 * (with_pages['p99'] / base['p99'] - 1):+.1f} %, "
+              f"Modbus p99 {with_pages['modbus_p99'] - base['modbus_p99']:+.2f} ms; "
+              f"load {os.getloadavg()[0]:.2f}")
+        span = args.seconds + 3.0
+        for i, g in enumerate(got):
+            print(f"  page {i + 1}: {g['state'] / span:.1f} states/s, {g['sonar'] / span:.1f} sonar frames/s, "
+                  f"{g['camera'] / span:.1f} camera pictures/s, {g['bytes'] / span / 1e6:.2f} MB/s")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(10)
+
+
+if __name__ == "__main__":
+    main()
