@@ -129,7 +129,7 @@ class ArisDevice(TcpServerDevice):
 
     def status(self) -> dict[str, float]:
         return {**super().status(), "renders": float(self.pinger.renders), "busy_skips": float(self.pinger.busy_skips),
-                "render_failures": float(self.pinger.failures)}
+                "render_failures": float(self.pinger.failures), "rays": float(self.pinger.rays)}
 
     # -- beacon and keep-alive ------------------------------------------------------------
 

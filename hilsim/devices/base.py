@@ -262,18 +262,25 @@ class TcpServerDevice(Device):
     """A device serving TCP clients through one :class:`~hilsim.links.tcp.TcpServer`.
 
     :meth:`serve` starts it with the options every TCP device has (``max_clients``,
-    ``idle_timeout_s``) and the subclass's ``on_connect`` / ``on_data`` / ``on_disconnect``;
+    ``idle_timeout_s``, ``evict_grace_s``: when the server is full, a newcomer evicts the client
+    that has gone longest without progress if that exceeds this many seconds; 0: never) and the
+    subclass's ``on_connect`` / ``on_data`` / ``on_disconnect``;
     ``vendor_port=True`` falls back to a free port when a vendor's fixed port is taken.
     :meth:`status` adds the server's counters.
     """
 
-    OPTIONS: ClassVar[Mapping[str, Any]] = {"port": 0, "max_clients": 16, "idle_timeout_s": 0}
+    OPTIONS: ClassVar[Mapping[str, Any]] = {"port": 0, "max_clients": 16, "idle_timeout_s": 0, "evict_grace_s": 5.0}
+    #: its clients are expected to send (commands, requests, keep-alives): one that has sent nothing
+    #: and taken nothing for ``evict_grace_s`` is idle (evictable when full); False for a stream whose
+    #: clients only listen (then only a client that stops taking what it is sent is evictable)
+    COMMAND_CHANNEL: ClassVar[bool] = True
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.option_int("port", 0, 65535)
         self.option_int("max_clients", 1, 10_000)
         self.option_number("idle_timeout_s", 0.0)
+        self.option_number("evict_grace_s", 0.0)
         self.server: Any = None
         self.host, self.port = ctx.bind, 0
 
@@ -283,6 +290,8 @@ class TcpServerDevice(Device):
 
         def make(port: int) -> Any:
             kw.setdefault("idle_timeout", float(self.options["idle_timeout_s"]))
+            kw.setdefault("evict_grace", float(self.options["evict_grace_s"]))
+            kw.setdefault("command_channel", self.COMMAND_CHANNEL)
             for cb in ("on_connect", "on_data", "on_disconnect"):
                 if hasattr(self, cb):
                     kw.setdefault(cb, getattr(self, cb))
@@ -305,6 +314,8 @@ class TcpServerDevice(Device):
         st = self.server.stats if self.server is not None else None
         base = {"clients": float(st.connected), "sent": float(st.messages_sent),
                 "dropped": float(st.messages_dropped), "refused": float(st.refused)} if st else {"clients": 0.0}
+        if st is not None and st.evicted:
+            base["evicted"] = float(st.evicted)
         return {**base, **super().status()}
 
 
@@ -352,11 +363,12 @@ class PtyDevice(Device):
 class CanDevice(Device):
     """A device on a CAN bus, shared with every device naming the same bus: options ``transport``
     (socketcand | slcan | socketcan | virtual), ``channel``, ``port`` (socketcand), ``path`` (slcan pty),
-    ``bitrate``, ``max_clients`` (socketcand). :meth:`attach` acquires the bus and subscribes;
+    ``bitrate``, ``max_clients`` and ``evict_grace_s`` (socketcand: a full server evicts a client gone
+    that long without progress for a newcomer; 0: never). :meth:`attach` acquires the bus and subscribes;
     :meth:`status` adds the bus's counters; :meth:`endpoint` names it."""
 
     OPTIONS: ClassVar[Mapping[str, Any]] = {"transport": "socketcand", "channel": "can0", "port": 0, "path": None,
-                                            "bitrate": 1_000_000, "max_clients": 8}
+                                            "bitrate": 1_000_000, "max_clients": 8, "evict_grace_s": 5.0}
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)

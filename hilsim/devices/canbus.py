@@ -25,6 +25,7 @@ def check_can_options(device: Any) -> None:
     if bitrate is not None and not (isinstance(bitrate, int) and not isinstance(bitrate, bool) and bitrate > 0):
         raise device.option_error("bitrate", f"bitrate must be a positive number of bit/s, got {bitrate!r}")
     device.option_int("max_clients", 1, 10_000)
+    device.option_number("evict_grace_s", 0.0)
 
 
 def bus_location(ctx: DeviceContext, options: Mapping[str, Any]) -> Any:
@@ -51,7 +52,8 @@ async def acquire_bus(ctx: DeviceContext, device: str, options: Mapping[str, Any
     where = bus_location(ctx, options)
     kw: dict[str, Any] = {"channel": channel}
     if transport == "socketcand":
-        kw.update(host=ctx.bind, port=where, bitrate=bitrate, max_clients=int(options["max_clients"]))
+        kw.update(host=ctx.bind, port=where, bitrate=bitrate, max_clients=int(options["max_clients"]),
+                  evict_grace=float(options["evict_grace_s"]))
     elif transport == "slcan":
         kw.update(path=where, bitrate=bitrate)
     cls = bus_class(transport)

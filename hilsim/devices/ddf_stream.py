@@ -48,6 +48,7 @@ class DdfStreamDevice(TcpServerDevice):
         "serial_number": 1,
     }
     COUNTERS = ("frames", "render_failures", "late_skips", "bad_commands")
+    COMMAND_CHANNEL = False  # its clients only listen: only one that stops reading is evictable
 
     def __init__(self, name: str, options: dict[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
@@ -203,7 +204,8 @@ class DdfStreamDevice(TcpServerDevice):
     async def _render_and_send(self, number: int) -> None:
         self.frame_number = number + 1
         try:
-            r = await self.ctx.render(self.mount, self.profile_ref, self.settings, frame_index=number)
+            r = await self.ctx.render(self.mount, self.profile_ref, self.settings, frame_index=number,
+                                      budget_s=1.0 / self.rate)
         except RenderFailed as exc:
             self.counters["render_failures"] += 1
             log.warning("%s: frame %d lost: %s", self.name, number, exc)
@@ -211,6 +213,7 @@ class DdfStreamDevice(TcpServerDevice):
         finally:
             self._rendering = False
         self.counters["frames"] += 1
+        self.counters["rays"] = r.rays  # elevation rays per beam of the last frame (status line)
         publish_frame(self, r, number)
         header = self._frame_header(number, r)
         plain = ddf.encode_frame(header, r.frame.image)
@@ -242,7 +245,7 @@ class DdfStreamDevice(TcpServerDevice):
             windowlength=self.length_code, receivergain=self.gain_db,
             velocity=float(math.sqrt(sum(float(v) ** 2 for v in s.velocity))), depth=s.depth, altitude=alt,
             pitch=pitch, pitchrate=q, roll=roll, rollrate=p, heading=yaw % 360.0, headingrate=rr,
-            sonarpan=myaw, sonartilt=mpitch, sonarroll=mroll)
+            sonarpan=myaw, sonartilt=mpitch, sonarroll=mroll, rays=r.rays)
 
 
 def _with_replies(h: ddf.FrameHeader, replies: bytes) -> ddf.FrameHeader:

@@ -126,7 +126,7 @@ class OculusDevice(TcpServerDevice):
 
     def status(self) -> dict[str, float]:
         return {**super().status(), "renders": float(self.pinger.renders), "busy_skips": float(self.pinger.busy_skips),
-                "render_failures": float(self.pinger.failures)}
+                "render_failures": float(self.pinger.failures), "rays": float(self.pinger.rays)}
 
     # -- status datagram ---------------------------------------------------------------
 
@@ -210,7 +210,8 @@ class OculusDevice(TcpServerDevice):
         fire: oc.Fire | None = client.state.get("fire")
         msg = oc.encode_message(oc.MSG_DUMMY, b"", src_device_id=self.device_id,
                                 dst_device_id=fire.src_device_id if fire is not None else 0)
-        if not client.closed and self.server.send(client, msg):
+        # a keep-alive: taking it does not make a client that never fires less idle (eviction)
+        if not client.closed and self.server.send(client, msg, progress=False):
             self.counters["dummies"] += 1
 
     def _send_dummies(self, t: float) -> None:

@@ -70,6 +70,7 @@ class ClientPinger:
         self.renders = 0
         self.busy_skips = 0
         self.failures = 0
+        self.rays = 0
 
     def set(self, key: int, entry: PingEntry | None) -> None:
         """Set (or with None remove) the entry of client ``key``; a new entry pings at once."""
@@ -145,12 +146,14 @@ class ClientPinger:
         index = self.frame_index
         self.frame_index += 1
         try:
-            r = await self.ctx.render(self.mount, head.profile, head.settings, frame_index=index)
+            r = await self.ctx.render(self.mount, head.profile, head.settings, frame_index=index,
+                                      budget_s=min(e.period for e in group))
         except RenderFailed as exc:
             self.failures += 1
             log.warning("%s: ping %d lost: %s", self.name, index, exc)
             return
         self.renders += 1
+        self.rays = r.rays  # elevation rays per beam of the last frame (status line)
         live = [e for e in group if self.entries.get(e.cid) is e]
         if live:
             self.on_frame(live, r, index)

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from hilsim.links.pty import PtyLink
-from hilsim.links.tcp import Client, TcpServer
+from hilsim.links.tcp import EVICT_GRACE, Client, TcpServer
 from hilsim.protocols.modbus import (MAX_RTU_ADU, MAX_TCP_LENGTH, RTU_NEED_MORE, RTU_UNDELIMITED, RtuDialect,
                                      rtu_request_length)
 from hilsim.protocols.modbus_device import ModbusStats, ModbusTarget, RtuSession, TcpSession, WriteAction
@@ -50,14 +50,17 @@ class ModbusTcpServer:
     batch: requests answered per client before letting the others in;
     write_buffer [bytes]: replies a client has not read beyond this are dropped (counted);
     idle_timeout [s]: a client that sent nothing and was sent nothing this long is dropped
-    (None: never; done by :class:`~hilsim.links.tcp.TcpServer`).
+    (None: never; done by :class:`~hilsim.links.tcp.TcpServer`); evict_grace [s]: when full, a
+    newcomer evicts the client longest without a request (or not reading its replies) if
+    that exceeds this (None or 0: never; :class:`~hilsim.links.tcp.TcpServer`).
     A peer that does not speak Modbus TCP is closed at once (holding it would let a
     reconnecting one fill the client slots); those closings log one warning a second.
     """
 
     def __init__(self, name: str, target: ModbusTarget, host: str = "127.0.0.1", port: int = 0, *,
                  max_clients: int = 32, max_rate: float = 1000.0, burst: int = 32, batch: int = 4,
-                 write_buffer: int = 64 * 1024, idle_timeout: float | None = None):
+                 write_buffer: int = 64 * 1024, idle_timeout: float | None = None,
+                 evict_grace: float | None = EVICT_GRACE):
         if max_rate < 0 or burst < 1:
             raise ValueError(f"{name}: max_rate must be >= 0 and burst >= 1")
         self.name = name
@@ -70,7 +73,7 @@ class ModbusTcpServer:
         self._unlogged = 0
         self.stats = ModbusStats()
         self.link = TcpServer(name, host, port, max_clients=max_clients, read_size=1024,
-                              idle_timeout=idle_timeout,
+                              idle_timeout=idle_timeout, evict_grace=evict_grace,
                               on_connect=self._on_connect, on_data=self._on_data)
 
     @property

@@ -11,7 +11,9 @@ decides what bytes mean; this module only moves them. Guarantees:
   client that has gone longest without progress, if that one has been so for more than
   ``evict_grace`` [s]: *stalled* (a message to it has waited on the peer that long: it does
   not read) or, on a ``command_channel`` (clients are expected to send: requests, pings,
-  fire messages), *idle* (nothing received from it and nothing taken by it that long). A
+  fire messages), *idle* (nothing received from it and nothing taken by it that long; a
+  keep-alive the device sends with ``progress=False`` does not count: the kernel takes small
+  messages for a peer that hung as well as for one that reads). A
   stream whose clients only listen (``command_channel=False``) never counts a listener it has
   nothing to send as idle. Each eviction is logged with its reason and counted
   (``LinkStats.evicted``). A server full of clients making progress refuses the newcomer, with
@@ -76,7 +78,7 @@ class Client:
     id: int
     peer: str
     writer: asyncio.StreamWriter
-    queue: asyncio.Queue[bytes]
+    queue: asyncio.Queue[tuple[bytes, bool]]  # (message, whether taking it is progress)
     sent: int = 0
     dropped: int = 0
     closed: bool = False
@@ -85,6 +87,7 @@ class Client:
     throttled: bool = False
     read_size: int = 4096    # [bytes] adapted to what its input costs
     last_active: float = 0.0           # [s] monotonic: the last byte received or message taken
+    last_progress: float = 0.0         # [s] monotonic: the same, keep-alives (progress=False) not counted
     writing_since: float | None = None  # [s] monotonic: start of the write now waiting on the peer
     state: dict = field(default_factory=dict)  # the device's per-client state (codec, settings)
 
@@ -193,12 +196,13 @@ class TcpServer:
                 n += self.send(c, message)
         return n
 
-    def send(self, client: Client, message: bytes) -> bool:
-        """Queue a whole message for one client; False (and counted) if its queue is full."""
+    def send(self, client: Client, message: bytes, *, progress: bool = True) -> bool:
+        """Queue a whole message for one client; False (and counted) if its queue is full.
+        ``progress=False``: a keep-alive, whose taking does not make the client less idle."""
         if client.closed:
             return False
         try:
-            client.queue.put_nowait(message)
+            client.queue.put_nowait((message, progress))
             return True
         except asyncio.QueueFull:
             client.dropped += 1
@@ -245,7 +249,8 @@ class TcpServer:
             _set_keepalive(sock, self.keepalive)
         now = time.monotonic()
         c = Client(next(self._ids), peer_s, writer, asyncio.Queue(self.queue_len),
-                   cpu_credit=self.cpu_burst, cpu_t=now, read_size=self.read_size, last_active=now)
+                   cpu_credit=self.cpu_burst, cpu_t=now, read_size=self.read_size, last_active=now,
+                   last_progress=now)
         self.clients[c.id] = c
         self.stats.accepted += 1
         self.stats.connected = len(self.clients)
@@ -258,7 +263,7 @@ class TcpServer:
                 data = await reader.read(c.read_size)
                 if not data:
                     break
-                c.last_active = time.monotonic()
+                c.last_active = c.last_progress = time.monotonic()
                 self.stats.bytes_received += len(data)
                 if self.on_data is not None:
                     # CPU time of this thread, not wall time: on a loaded machine the time the OS
@@ -322,7 +327,7 @@ class TcpServer:
         if c.writing_since is not None:
             return now - c.writing_since, "stalled"
         if self.command_channel and c.queue.empty():
-            return now - c.last_active, "idle"
+            return now - c.last_progress, "idle"
         return 0.0, ""
 
     def _evict_for(self, newcomer: str) -> bool:
@@ -341,7 +346,7 @@ class TcpServer:
             return False
         self.stats.evicted += 1
         what = ("has taken nothing it was sent" if why == "stalled"
-                else "sent nothing and was sent nothing")
+                else "sent nothing and took nothing but keep-alives")
         log.warning("%s: client %s evicted (%s: %s for %.1f s) to admit %s: client limit %d reached",
                     self.name, victim.peer, why, what, worst, newcomer, self.max_clients)
         self._drop(victim)
@@ -377,11 +382,13 @@ class TcpServer:
     async def _send_loop(self, c: Client) -> None:
         try:
             while not c.closed:
-                msg = await c.queue.get()
+                msg, progress = await c.queue.get()
                 c.writing_since = time.monotonic()
                 c.writer.write(msg)
                 await c.writer.drain()
                 c.last_active = time.monotonic()
+                if progress:
+                    c.last_progress = c.last_active
                 c.writing_since = None
                 c.sent += 1
                 self.stats.messages_sent += 1

@@ -9,6 +9,7 @@ pins the policy down deterministically.
 from __future__ import annotations
 
 import asyncio
+from types import SimpleNamespace
 from collections import Counter
 
 from hilsim.devices.sonar_pinger import ClientPinger, PingEntry
@@ -42,12 +43,12 @@ class SteppedContext:
         task.add_done_callback(self.tasks.discard)
         return None
 
-    async def render(self, mount, profile, settings, frame_index=0):
+    async def render(self, mount, profile, settings, frame_index=0, budget_s=None):
         start = self.t
         while self.t < start + self.render_s - 1e-9:
             await asyncio.sleep(0)
         self.renders.append((start, settings))
-        return frame_index
+        return SimpleNamespace(index=frame_index, rays=1000)
 
 
 def run(render_s: float, clients: list[tuple[str, float, float]], duration: float) -> tuple[Counter, list]:

@@ -302,7 +302,7 @@ def test_a_full_server_evicts_the_client_longest_without_progress(caplog):
     with caplog.at_level("INFO", logger="hilsim.links.tcp"):
         run(main())
     text = caplog.text
-    assert "evicted (idle: sent nothing and was sent nothing for" in text
+    assert "evicted (idle: sent nothing and took nothing but keep-alives for" in text
     assert "evicted (stalled: has taken nothing it was sent for" in text
     assert text.count("evicted (") == 2
 
@@ -354,5 +354,43 @@ def test_a_stream_listener_with_nothing_to_read_is_not_idle():
             w.close()
             listener.close()
             await srv.close()
+
+    run(main())
+
+
+def test_keep_alives_do_not_make_an_idle_client_less_idle():
+    """A command channel's keep-alives (sent with progress=False: the kernel takes small messages
+    for a peer that hung as well as for one that reads) leave a silent client idle, evictable past
+    the grace; a client that takes real messages (a listener of its pings) is making progress."""
+    async def main():
+        srv = TcpServer("t", max_clients=2, evict_grace=0.4)
+        host, port = await srv.start()
+        silent = socket.create_connection((host, port))        # never fired: only keep-alives
+        listener_r, listener_w = await asyncio.open_connection(host, port)  # gets real messages
+        while srv.stats.connected < 2:
+            await asyncio.sleep(0.01)
+        lport = listener_w.get_extra_info("sockname")[1]
+        got = 0
+        for i in range(8):  # 0.8 s: twice the grace
+            for c in list(srv.clients.values()):
+                if _port_of(c) == lport:
+                    srv.send(c, message(i))
+                else:
+                    srv.send(c, b"keep-alive", progress=False)
+            got += await read_message(listener_r) == i
+            await asyncio.sleep(0.1)
+        assert got == 8
+        ages = {_port_of(c): srv.stale_for(c) for c in srv.clients.values()}
+        assert ages[silent.getsockname()[1]][1] == "idle" and ages[silent.getsockname()[1]][0] > 0.4, ages
+        assert ages[lport][0] < 0.3, ages
+        r, w = await asyncio.open_connection(host, port)
+        assert not await _refused(r, 0.3)  # admitted: the silent one was evicted, the listener kept
+        left = {_port_of(c) for c in srv.clients.values()}
+        assert silent.getsockname()[1] not in left and lport in left
+        assert srv.stats.evicted == 1
+        for x in (listener_w, w):
+            x.close()
+        silent.close()
+        await srv.close()
 
     run(main())

@@ -32,7 +32,7 @@ from tests.runtime.bridge_helpers import ROOT, start_bridge
 
 pytestmark = pytest.mark.timeout(120)
 
-GRACE = 5.0        # [s] the TcpServer default (evict_grace)
+GRACE = 1.5        # [s] evict_grace_s of every device here (default 5)
 LIMITS = {"ddf-stream": 3, "oculus": 3, "aris": 2, "modbus-keller": 3, "socketcand": 3}
 DEVICES = {"ddf-stream": "sonar_ddf", "oculus": "sonar_oculus", "aris": "sonar_aris", "modbus-keller": "depth",
            "socketcand": "vesc_can"}
@@ -45,7 +45,7 @@ EXTRA = {"aris": "keepalive_timeout_s = 30\n"}
 
 
 def scenario(tmp) -> str:
-    """The default scenario with free ports, the small client limits above and EXTRA."""
+    """The default scenario with free ports, the small client limits and the grace above, and EXTRA."""
     text = (ROOT / "scenarios" / "water_tank" / "scenario.toml").read_text()
     for old, new in (("port = 52100", "port = 0"), ("port = 56888", "port = 0")):
         assert text.count(old) == 1, old
@@ -53,7 +53,8 @@ def scenario(tmp) -> str:
     for proto, device in DEVICES.items():
         head = f'[[devices]]\nname = "{device}"\n'
         assert text.count(head) == 1, head
-        text = text.replace(head, head + f"max_clients = {LIMITS[proto]}\n" + EXTRA.get(proto, ""))
+        text = text.replace(head, head + f"max_clients = {LIMITS[proto]}\nevict_grace_s = {GRACE}\n"
+                            + EXTRA.get(proto, ""))
     path = tmp / "scenario.toml"
     path.write_text(text)
     return str(path)

@@ -18,7 +18,7 @@ import time
 from typing import Any
 
 from hilsim.links.can.bus import CanBus, TokenBucket
-from hilsim.links.tcp import Client, TcpServer
+from hilsim.links.tcp import EVICT_GRACE, Client, TcpServer
 from hilsim.protocols import socketcand as sc
 from hilsim.protocols.can import CanFrame
 
@@ -27,17 +27,19 @@ log = logging.getLogger(__name__)
 
 class SocketcandBus(CanBus):
     """host/port: where to listen (port 0 picks a free one); max_clients: beyond it
-    connections are refused with a log line; queue_len: frames queued per client."""
+    connections are refused with a log line, unless a client has gone ``evict_grace`` [s]
+    without progress (sent nothing and taken nothing, or not reading): the newcomer evicts it
+    (:class:`~hilsim.links.tcp.TcpServer`); queue_len: frames queued per client."""
 
     transport = "socketcand"
 
     def __init__(self, name: str, channel: str = "can0", *, host: str = "127.0.0.1", port: int = 0,
                  bitrate: int | None = 1_000_000, burst: float = 0.05, max_clients: int = 8,
-                 queue_len: int = 2048, raw_grace: float = 0.2) -> None:
+                 queue_len: int = 2048, raw_grace: float = 0.2, evict_grace: float | None = EVICT_GRACE) -> None:
         super().__init__(name, channel, bitrate=bitrate, burst=burst)
         self.raw_grace = raw_grace
         self.server = TcpServer(name, host, port, max_clients=max_clients, queue_len=queue_len,
-                                on_connect=self._on_connect, on_data=self._on_data,
+                                evict_grace=evict_grace, on_connect=self._on_connect, on_data=self._on_data,
                                 on_disconnect=self._on_disconnect)
 
     @property
