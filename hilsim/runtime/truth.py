@@ -241,6 +241,10 @@ class RunTruth:
         self.events = ContactEvents(on_event=self._publish)
         self.recorder = TruthRecorder(truth_path, bridge.vehicle, rate_hz, faults=getattr(bridge, "faults", None),
                                       events=self.events).attach()
+        for device in getattr(bridge, "devices", ()):  # columns a device offers (a PWM per servo output)
+            columns = getattr(device, "truth_columns", None)
+            if columns is not None:
+                self.recorder.add_columns(*columns())
         self.summary: dict[str, Any] | None = None
 
     @property

@@ -352,3 +352,19 @@ def _dive(mavutil: Any, port: int) -> float:
         if msg is not None:
             alt = msg.relative_alt / 1000.0
     return alt
+
+
+def test_the_truth_record_carries_the_pwm_per_servo_output(tmp_path: Path) -> None:
+    import csv
+
+    path = scenario(tmp_path)
+
+    async def body(bridge: Bridge, c: Client) -> None:
+        await c.fly([1500, 1500, 1500, 1500, 1700, 1650], 1.0)
+
+    run(path, body)
+    with open(path.parent / "run" / "truth.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and [f"pwm_{i}" for i in range(1, 7)] == [k for k in rows[0] if k.startswith("pwm_")]
+    last = rows[-1]
+    assert (last["pwm_1"], last["pwm_5"], last["pwm_6"]) == ("1500", "1700", "1650")
