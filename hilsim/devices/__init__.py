@@ -26,6 +26,7 @@ REGISTRY: dict[str, str] = {
     "dvl-a50": "hilsim.devices.dvl:DvlDevice",
     "nmea-gnss": "hilsim.devices.gnss:GnssDevice",
     "ping1d": "hilsim.devices.ping1d:Ping1dDevice",
+    "ping360": "hilsim.devices.ping360:Ping360Device",
 }
 
 

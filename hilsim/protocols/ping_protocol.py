@@ -1,7 +1,7 @@
-"""Blue Robotics ping-protocol (Ping1D echosounder; Ping360 to come), sans-I/O.
+"""Blue Robotics ping-protocol (the Ping1D echosounder and the Ping360 scanning sonar), sans-I/O.
 
 Spec: ``protocols/ping-protocol.md``, from bluerobotics/ping-protocol's message
-definitions (``src/definitions/common.json``, ``ping1d.json``). A packet::
+definitions (``src/definitions/common.json``, ``ping1d.json``, ``ping360.json``). A packet::
 
     'B' 'R'  payload_length u16  message_id u16  src_device_id u8  dst_device_id u8
     payload (payload_length bytes)  checksum u16
@@ -127,6 +127,22 @@ register(
                                    "scan_length", "gain_setting"), tail="u16_u8s", tail_name="profile_data"),
     M(1301, "oss_profile_configuration", "HBB", ("number_of_points", "normalization_enabled",
                                                   "enhance_enabled")),
+    # ping360.json (ids and units named in hilsim.protocols.ping360); its set_device_id (2000) is
+    # named ping360_set_device_id here, the common one (100) keeping the plain name
+    M(2000, "ping360_set_device_id", "BB", ("id", "reserved")),
+    M(2300, "device_data", "BBHHHHH", ("mode", "gain_setting", "angle", "transmit_duration", "sample_period",
+                                       "transmit_frequency", "number_of_samples"), tail="u16_u8s", tail_name="data"),
+    M(2301, "auto_device_data", "BBHHHHHHBBH", ("mode", "gain_setting", "angle", "transmit_duration",
+                                                "sample_period", "transmit_frequency", "start_angle", "stop_angle",
+                                                "num_steps", "delay", "number_of_samples"),
+      tail="u16_u8s", tail_name="data"),
+    M(2600, "reset", "BB", ("bootloader", "reserved")),
+    M(2601, "transducer", "BBHHHHHBB", ("mode", "gain_setting", "angle", "transmit_duration", "sample_period",
+                                        "transmit_frequency", "number_of_samples", "transmit", "reserved")),
+    M(2602, "auto_transmit", "BBHHHHHHBB", ("mode", "gain_setting", "transmit_duration", "sample_period",
+                                            "transmit_frequency", "number_of_samples", "start_angle", "stop_angle",
+                                            "num_steps", "delay")),
+    M(2903, "motor_off", "", ()),
 )
 del M
 

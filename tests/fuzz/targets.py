@@ -40,6 +40,7 @@ from hilsim.protocols import dvl_json, dvl_serial, nmea, ping_protocol
 from tests.fuzz import adapters as A
 from tests.fuzz import links as L
 from tests.fuzz import samples as S
+from tests.fuzz import samples_ping360 as SP
 from tests.fuzz import samples_serial_sensors as SS
 from tests.fuzz import samples_navigation as SN
 from tests.fuzz.adapters import Closed, Events, PeerError, Reply
@@ -292,6 +293,14 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
         resync_after=ping_protocol.HEADER_LEN + ping_protocol.MAX_PAYLOAD + ping_protocol.CHECKSUM_LEN,
         resync_note="a 'BR' in garbage (or a cut packet) announces up to max_payload bytes; the decoder waits "
                     "for them (as the device's byte-by-byte parser does) and drops them with a bad checksum"),
+    Target(
+        "ping360", "Blue Robotics Ping360 commands (device side): ping_protocol.PingDecoder, Ping360 messages",
+        make=A.driven(ping_protocol.PingDecoder),
+        bound=ping_protocol.HEADER_LEN + ping_protocol.MAX_PAYLOAD + ping_protocol.CHECKSUM_LEN - 1,
+        measure="PingDecoder.buffered_bytes (one packet at most)",
+        samples=SP.ping360_samples, oversize=SN.ping_oversize, chunk_dependent=(ping_protocol.Junk,),
+        resync_after=ping_protocol.HEADER_LEN + ping_protocol.MAX_PAYLOAD + ping_protocol.CHECKSUM_LEN,
+        resync_note="as ping-protocol: the same framing and decoder"),
 ]}
 
 
