@@ -6,7 +6,12 @@ STAMP   := $(VENV)/.installed
 TSTAMP  := $(VENV)/.installed-test
 OUT     ?= out
 
-.PHONY: run bridge render experiment test install install-test bench clean lint
+.PHONY: run bridge render experiment test install install-test peers bench clean lint
+
+# Debian programs the tests use as independent peers: command:package. `make test` installs the
+# missing ones when it can (root with apt-get, as on CI and the development machines); tests whose
+# peer is missing skip with the reason.
+PEERS ?= socat:socat mbpoll:mbpoll gpsd:gpsd gpspipe:gpsd-clients chromium:chromium chromedriver:chromium-driver
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -42,7 +47,17 @@ render: $(STAMP)
 experiment: $(STAMP)
 	$(BIN)/hilsim experiment water-tank --out $(OUT)/experiment
 
-test: $(TSTAMP)
+peers:
+	@need=""; for t in $(PEERS); do command -v "$${t%%:*}" >/dev/null 2>&1 || need="$$need $${t##*:}"; done; \
+	if [ -n "$$need" ]; then \
+	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	    echo "installing test peers:$$need"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$need >/dev/null \
+	      || echo "warning: could not install$$need (their tests will skip)" >&2; \
+	  else echo "note: missing test peers:$$need (install them with apt-get; their tests skip meanwhile)" >&2; fi; \
+	fi
+
+test: $(TSTAMP) peers
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 bench: $(STAMP)

@@ -161,3 +161,29 @@ def test_worker_lowers_the_ray_count_for_a_tight_budget_and_raises_it_with_slack
             await w.close()
 
     asyncio.run(asyncio.wait_for(main(), 120))
+
+
+def test_bridge_frames_and_status_line_state_the_ray_count(tmp_path):
+    """Each DDF frame header states its elevation rays per beam at offset 732 (read here with
+    struct, protocols/ddf-stream.md): within the profile's [min_elevation_rays, elevation_rays]
+    = [100, 1000]; the status line shows the sonar's rays too."""
+    from tests.runtime.abuse_clients import last_status
+
+    b = start_bridge(tmp_path, "--status-interval", "0.5")
+    try:
+        s = socket.create_connection(b.tcp("ddf-stream"), timeout=30)
+        read_file_header(s)
+        frames = [read_frame(s, 96, 512) for _ in range(6)]
+        rays = [int.from_bytes(f.raw[732:736], "little", signed=True) for f in frames]
+        assert all(100 <= r <= 1000 for r in rays), rays
+        deadline = time.monotonic() + 10
+        st = None
+        while time.monotonic() < deadline:
+            read_frame(s, 96, 512)
+            st = last_status(b.log())
+            if st and st["devices"].get("sonar_ddf", {}).get("rays"):
+                break
+        s.close()
+        assert st is not None and 100 <= st["devices"]["sonar_ddf"]["rays"] <= 1000, st
+    finally:
+        assert b.stop() == 0
