@@ -264,4 +264,4 @@ class OculusDevice(TcpServerDevice):
             ping_id=index, status=0, frequency=self.profiles[mode].frequency, temperature=20.0,
             pressure=self._pressure_bar(), heading=yaw % 360.0, pitch=pitch, roll=roll,
             speed_of_sound_used=sos, ping_start_time=start, src_device_id=int(self.options["device_id"]),
-            dst_device_id=fire.src_device_id)
+            dst_device_id=fire.src_device_id, rays=r.rays)

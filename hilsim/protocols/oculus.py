@@ -183,7 +183,8 @@ class PingResult:
     per-row gains when ``fire.send_gain``, else None. Times: ping_start_time [s]
     (v1 carries a uint32 count, v2 a float64). range_resolution [m], frequency [Hz],
     temperature [degC], pressure [bar], heading/pitch/roll [deg] (v2 only).
-    The size fields are recomputed by :func:`encode_ping_result`; decoded
+    rays: hilsim's elevation rays per beam of the ping (v2 only, the first spare u32 @174;
+    0: not stated). The size fields are recomputed by :func:`encode_ping_result`; decoded
     values keep what the peer sent.
     """
 
@@ -207,6 +208,7 @@ class PingResult:
     image_offset: int = 0
     image_size: int = 0
     message_size: int = 0
+    rays: int = 0
 
     @property
     def n_ranges(self) -> int:
@@ -449,7 +451,7 @@ def encode_ping_result(p: PingResult) -> bytes:
     if v2:
         tail = _PING_V2.pack(p.ping_id, p.status, p.frequency, p.temperature, p.pressure, p.heading,
                              p.pitch, p.roll, p.speed_of_sound_used, p.ping_start_time, p.data_size,
-                             p.range_resolution, nr, nb, 0, 0, 0, 0, image_offset, image_size,
+                             p.range_resolution, nr, nb, p.rays, 0, 0, 0, image_offset, image_size,
                              message_size)
     else:
         start = int(p.ping_start_time) & 0xFFFFFFFF
@@ -474,6 +476,7 @@ def _decode_ping(h: Header, data: bytes) -> PingResult | BadMessage:
         (ping_id, status, freq, temp, press, sos, start, ds, rres, nr, nb, ioff, isize,
          msize) = _PING_V1.unpack_from(data, FIRE_V1_SIZE)
         heading = pitch = roll = 0.0
+        _s0 = 0
     if ds not in _DTYPES:
         return bad(f"dataSize {ds} not supported")
     if not HEADER_SIZE + h.payload_size == ioff + isize == msize == len(data):
@@ -497,7 +500,7 @@ def _decode_ping(h: Header, data: bytes) -> PingResult | BadMessage:
                       ping_id=ping_id, status=status, frequency=freq, temperature=temp, pressure=press,
                       heading=heading, pitch=pitch, roll=roll, speed_of_sound_used=sos,
                       ping_start_time=float(start), src_device_id=h.src_device_id,
-                      dst_device_id=h.dst_device_id, image_offset=ioff, image_size=isize,
+                      dst_device_id=h.dst_device_id, image_offset=ioff, image_size=isize, rays=_s0,
                       message_size=msize)
 
 

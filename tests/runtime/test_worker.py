@@ -16,7 +16,7 @@ from hilsim.devices.base import RenderFailed
 from hilsim.resources import find_profile, find_scenario
 from hilsim.runtime.worker import RenderWorker
 from hilsim.sim.geometry import Pose
-from tests.runtime.bridge_helpers import read_file_header, read_frame, start_bridge
+from tests.runtime.bridge_helpers import read_file_header, read_frame, recv_exact, start_bridge
 
 POSE = Pose.from_xyz_rpy((-1.35, 0.0, 1.8), (0.0, np.radians(-45), 0.0))
 
@@ -185,5 +185,20 @@ def test_bridge_frames_and_status_line_state_the_ray_count(tmp_path):
                 break
         s.close()
         assert st is not None and 100 <= st["devices"]["sonar_ddf"]["rays"] <= 1000, st
+        # the Oculus: a v2 SimplePingResult carries them in its first spare u32 (@174,
+        # protocols/oculus.md), within the M750d profile's [16, 64]
+        from hilsim.protocols import oculus as oc
+
+        with socket.create_connection(b.tcp("oculus"), timeout=30) as o:
+            o.sendall(oc.encode_fire(oc.Fire(master_mode=oc.MODE_HF, ping_rate=3, flags=0x09, range=3.0,
+                                             gain=100.0, version=2)))
+            got = []
+            while len(got) < 3:
+                head = recv_exact(o, 16)
+                assert head[:2] == b"SO"
+                msg = head + recv_exact(o, int.from_bytes(head[10:14], "little"))
+                if int.from_bytes(head[6:8], "little") == 0x23:
+                    got.append(int.from_bytes(msg[174:178], "little"))
+        assert all(16 <= r <= 64 for r in got), got
     finally:
         assert b.stop() == 0
