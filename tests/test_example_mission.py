@@ -187,7 +187,10 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     obs.join(timeout=10)
     summary_path = out / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    bridge_summary_path = run_dir / "summary.json"  # the bridge's own, beside its endpoints file
+    bridge_summary = json.loads(bridge_summary_path.read_text()) if bridge_summary_path.exists() else {}
     return {"rc": proc.returncode, "out": out, "log": (tmp / "demo.log").read_text(errors="replace"),
+            "bridge_summary": bridge_summary,
             "bridge_log": (out / "bridge.log").read_text(errors="replace") if (out / "bridge.log").exists() else "",
             "summary": summary, "obs": obs, "wall": wall}
 
@@ -347,3 +350,13 @@ def test_the_mixing_matrix_gives_the_requested_wrench():
                                    np.array(wrench, float)[[0, 1, 2, 5]], atol=1e-9)
     t = m.allocate(alloc, 1000.0, 0.0, 0.0, 0.0, limit=25.0)
     assert np.max(np.abs(t)) == pytest.approx(25.0) and np.all(t[4:] == 0)
+
+
+def test_the_mission_touches_nothing(run):
+    """The bridge's ground truth: the hull never touched the floor, a wall or the cuboid."""
+    b = run["bridge_summary"]
+    assert b, "no summary.json beside the bridge's endpoints file"
+    assert b["contacts"] == {"count": 0, "events": []}, b["contacts"]
+    truth = Path(b["truth"])
+    assert truth.exists() and truth.stat().st_size > 0
+    assert b["sim_time_s"] >= run["summary"]["duration_s"] - 1.0

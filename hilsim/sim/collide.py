@@ -49,6 +49,11 @@ def _cross(a: F64, b: F64) -> F64:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
+def _dot(a: F64, b: F64) -> F64:
+    """Dot products over the last axis, broadcast."""
+    return (a * b).sum(axis=-1)
+
+
 def _unit_rows(v: F64) -> tuple[F64, np.ndarray]:
     """Rows of ``v`` (..., 3) normalised, and the mask of rows too short to normalise."""
     n = np.sqrt(np.einsum("...d,...d->...", v, v))
@@ -169,22 +174,22 @@ def choose_normal(axes: F64, op: F64, om: F64, pop: F64, pom: F64, one_sided: in
 def _point_segment(p: F64, a: F64, b: F64) -> F64:
     """Distances (broadcast shape) [m] from points ``p`` (..., 3) to segments ``a``-``b`` (..., 3)."""
     ab = b - a
-    den = np.einsum("...d,...d->...", ab, ab)
-    t = np.clip(np.einsum("...d,...d->...", p - a, ab) / np.where(den > 0, den, 1.0), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+    den = _dot(ab, ab)
+    t = np.clip(_dot(p - a, ab) / np.where(den > 0, den, 1.0), 0.0, 1.0)
+    d = p - (a + t[..., None] * ab)
+    return np.sqrt(_dot(d, d))
 
 
 def point_triangle_distance(p: F64, tris: F64) -> F64:
     """(P, T) [m] distances from points (P, 3) to triangles (T, 3, 3)."""
     a, b, c = (tris[None, :, i, :] for i in range(3))
     q = p[:, None, :]
-    n = np.cross(b - a, c - a)
-    nn = np.linalg.norm(n, axis=-1)
+    n = _cross(b - a, c - a)
+    nn = np.sqrt(_dot(n, n))
     nn_safe = np.where(nn > 0, nn, 1.0)
-    inside = ((np.einsum("...d,...d->...", np.cross(b - a, q - a), n) >= 0)
-              & (np.einsum("...d,...d->...", np.cross(c - b, q - b), n) >= 0)
-              & (np.einsum("...d,...d->...", np.cross(a - c, q - c), n) >= 0) & (nn > 0))
-    plane = np.abs(np.einsum("...d,...d->...", q - a, n)) / nn_safe
+    inside = ((_dot(_cross(b - a, q - a), n) >= 0) & (_dot(_cross(c - b, q - b), n) >= 0)
+              & (_dot(_cross(a - c, q - c), n) >= 0) & (nn > 0))
+    plane = np.abs(_dot(q - a, n)) / nn_safe
     edge = np.minimum(np.minimum(_point_segment(q, a, b), _point_segment(q, b, c)), _point_segment(q, c, a))
     return np.where(inside, plane, edge)
 
@@ -225,10 +230,13 @@ def box_triangle_distance(c: F64, rot: F64, half: F64, tris: F64) -> F64:
     d_ee = segment_segment_distance(e0[None, :, None, :], e1[None, :, None, :],
                                     t0[:, None, :, :], t1[:, None, :, :]).reshape(len(q), -1).min(axis=1)
     d = np.minimum(np.minimum(d_vf, d_fv), d_ee)
-    normals, _ = _unit_rows(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]))
-    _, op, om = sat_triangles(c, rot, half, tris, normals)
-    inter = np.all((op >= 0.0) & (om >= 0.0), axis=1)
-    return np.where(inter, 0.0, d)
+    # a triangle can only cut through the box if the box straddles its plane: test those by SAT
+    normals, _ = _unit_rows(_cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]))
+    straddle = np.abs(_dot(normals, c - tris[:, 0])) <= np.abs(normals @ rot) @ half
+    if np.any(straddle):
+        _, op, om = sat_triangles(c, rot, half, tris[straddle], normals[straddle])
+        d[straddle] = np.where(np.all((op >= 0.0) & (om >= 0.0), axis=1), 0.0, d[straddle])
+    return d
 
 
 class TriangleGrid:

@@ -466,21 +466,34 @@ class ContactModel:
         corners = c + self._box_world_corners(rot)
         lo, hi = corners.min(axis=0), corners.max(axis=0)
         gaps = shapes.aabb_gaps(lo, hi)
-        best, name = math.inf, ""
-        for i in np.argsort(gaps).tolist():
-            if gaps[i] >= best:
-                break
-            reach = max(float(gaps[i]), 0.25)
-            while True:
-                idx = shapes.triangles_within(i, lo - reach, hi + reach)
-                d = float(box_triangle_distance(c, rot, self.half, shapes.triangles(i, idx)[0]).min()) \
-                    if len(idx) else math.inf
-                if d <= reach or reach >= shapes.extent:
-                    break
-                reach = min(max(2.0 * reach, d), shapes.extent)
-            if d < best:
-                best, name = d, shapes.names[i]
-        return best, name
+        reach = max(float(gaps.min()), 0.25)
+        while True:  # the triangles within reach; the nearest of them is the nearest of all if within reach
+            idx = shapes.all_within(lo - reach, hi + reach)
+            d, k = self._nearest(shapes, c, rot, lo, hi, idx) if len(idx) else (math.inf, -1)
+            if d <= reach or reach >= shapes.extent:
+                return d, (shapes.names[shapes.owner(k)] if k >= 0 else "")
+            reach = min(max(2.0 * reach, d), shapes.extent)
+
+    def _nearest(self, shapes: WorldShapes, c: F64, rot: F64, lo: F64, hi: F64, idx: np.ndarray
+                 ) -> tuple[float, int]:
+        """The exact distance [m] from the hull to the nearest of the world's triangles ``idx``, and
+        its index: triangles in order of a cheap lower bound (their bounding box's and their plane's
+        distance), exactly only while the bound is below the best so far."""
+        tris, normals = shapes.all_triangles(idx)
+        tlo, thi = tris.min(axis=1), tris.max(axis=1)
+        g = np.maximum(np.maximum(tlo - hi, lo - thi), 0.0)
+        plane = np.abs(np.einsum("td,td->t", normals, c - tris[:, 0])) - np.abs(normals @ rot) @ self.half
+        lb = np.maximum(np.sqrt((g * g).sum(axis=1)), plane)
+        order = np.argsort(lb)
+        best, at = math.inf, -1
+        for chunk in (order[:8], order[8:]):
+            chunk = chunk[lb[chunk] < best]
+            if len(chunk):
+                d = box_triangle_distance(c, rot, self.half, tris[chunk])
+                j = int(np.argmin(d))
+                if d[j] < best:
+                    best, at = float(d[j]), int(idx[chunk[j]])
+        return best, at
 
     def altitude(self, state: VehicleState) -> float:
         """[m] from the body origin straight down (NED +z) to the first surface; inf if none."""

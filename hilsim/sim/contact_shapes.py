@@ -120,6 +120,20 @@ class WorldShapes:
         sep = float(min(0.5 * m, gap[~near].min())) if np.any(~near) else 0.5 * m
         return idx[near], sep
 
+    def all_within(self, lo: F64, hi: F64) -> np.ndarray:
+        """Indices into the world's triangles of those whose bounding box meets [lo, hi] (3,) [m]."""
+        near = np.flatnonzero(np.all((self.lo <= hi) & (self.hi >= lo), axis=1))
+        found = [self._start[i] + self.triangles_within(int(i), lo, hi) for i in near.tolist()]
+        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+
+    def all_triangles(self, idx: np.ndarray) -> tuple[F64, F64]:
+        """The world's triangles ``idx``: (k, 3, 3) vertices [m], (k, 3) unit normals."""
+        return self._tris[idx], self._normals[idx]
+
+    def owner(self, k: int) -> int:
+        """The object of the world's triangle ``k``."""
+        return int(np.searchsorted(self._stop, k, side="right"))
+
     def triangles(self, i: int, idx: np.ndarray) -> tuple[F64, F64]:
         """Object ``i``'s triangles ``idx``: (k, 3, 3) vertices [m] and (k, 3) unit normals."""
         s = self._start[i]
