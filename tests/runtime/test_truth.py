@@ -223,3 +223,41 @@ def test_on_the_wire_full_down_thrust_stops_at_the_floor_and_the_truth_has_one_c
     assert summary["contacts"]["count"] == 1 and summary["contacts"]["events"][0]["object"] == "floor"
     assert summary["truth"] == str(tmp_path / "truth.csv") and summary["scenario"] == "water_tank"
     assert summary["devices"]["vesc_can"] and "contact start" in bp.log() and "contacts 1" in bp.log()
+
+
+def test_the_bridge_publishes_contacts_counts_them_and_records_faults(tmp_path: Path) -> None:
+    """An in-process bridge on the virtual clock (the tank without devices): full down thrust, a
+    thruster fault injected and cleared through the bridge's fault table; the 'contact' topic,
+    the status count, the truth's faults column and the summary's fault history."""
+    import asyncio
+
+    from hilsim.runtime.bridge import Bridge
+
+    text = (ROOT / "scenarios" / "water_tank" / "scenario.toml").read_text()
+    (tmp_path / "scenario.toml").write_text(text[:text.find("[[devices]]")])
+    seen: list[dict] = []
+
+    async def main() -> tuple[dict, dict]:
+        b = Bridge(tmp_path / "scenario.toml", fast=True, run_dir=tmp_path / "run", status_interval=0)
+        b.summary_path = tmp_path / "summary.json"
+        b.observers.subscribe("contact", lambda topic, m: seen.append(dict(m)))
+        await b.start()
+        ts = b.vehicle.thrusters
+        b.every("control", 0.1, lambda t: ts.command_all("normalized", [0, 0, 0, 0, 1, 1, 1, 1], t), priority=-1)
+        b.at(1.0, lambda t: b.faults.inject("thruster:front_left", "fail"))
+        b.at(2.0, lambda t: b.faults.clear("thruster:front_left", "fail"))
+        await b.run(9.0)
+        status = b.status()
+        await b.close()
+        return status, json.loads((tmp_path / "summary.json").read_text())
+
+    status, summary = asyncio.run(main())
+    assert status["contacts"] == 1
+    assert [(m["event"], m["object"]) for m in seen] == [("start", "floor"), ("end", "floor")]
+    assert set(seen[0]) == {"t", "event", "object", "force_N", "speed_m_s"} and seen[0]["speed_m_s"] > 0.2
+    rows = list(csv.DictReader(open(tmp_path / "run" / "truth.csv", newline="")))  # the run folder's
+    faulty = [float(r["time_s"]) for r in rows if r["faults"] == "thruster:front_left:fail"]
+    assert faulty and 1.0 <= min(faulty) < 1.06 and 1.9 < max(faulty) < 2.0
+    assert summary["faults"] == [{"t_s": 1.0, "target": "thruster:front_left", "fault": "fail", "on": True},
+                                 {"t_s": 2.0, "target": "thruster:front_left", "fault": "fail", "on": False}]
+    assert summary["contacts"]["count"] == 1 and summary["sim_time_s"] == pytest.approx(9.0)
