@@ -13,7 +13,6 @@ import copy
 import hashlib
 import itertools
 import json
-import re
 import shutil
 import sys
 import tomllib
@@ -21,10 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from hilsim.campaign.spec import Campaign, find_in_scenario
+from hilsim.campaign.spec import PLACEHOLDERS, Campaign, expand_command, find_in_scenario  # noqa: F401 (re-exported)
 
-_PLACEHOLDER = re.compile(r"\{([A-Za-z_]*)\}")
-PLACEHOLDERS = ("endpoints", "out", "seed", "run", "python", "campaign_dir", "scenario", "case")
 
 
 @dataclass(frozen=True)
@@ -70,27 +67,6 @@ def expand(c: Campaign) -> list[Case]:
         over = {k: v for k, v in params.items() if k != "seed"}
         out.append(Case(i, params, case_key(params), seed, over))
     return out
-
-
-def expand_command(command: str, values: Mapping[str, str]) -> list[str]:
-    """Split ``command`` like a shell would (no shell runs it) and fill the placeholders."""
-    import shlex
-
-    try:
-        words = shlex.split(command)
-    except ValueError as exc:
-        raise ValueError(f"cannot split the command: {exc}") from None
-    if not words:
-        raise ValueError("the command is empty")
-
-    def fill(m: re.Match[str]) -> str:
-        name = m.group(1)
-        if name not in values:
-            raise ValueError(f"unknown placeholder {{{name}}}; known: "
-                             + ", ".join("{" + k + "}" for k in PLACEHOLDERS))
-        return values[name]
-
-    return [_PLACEHOLDER.sub(fill, w) for w in words]
 
 
 def scenario_data(c: Campaign, case: Case) -> dict[str, Any] | None:

@@ -28,6 +28,8 @@ _RENDER = ("sonar", "camera", "count", "elevation_rays", "realism", "png", "pose
 _POSES = ("mode", "min_m", "max_m", "yaw_deg", "waypoints_m", "list", "pitch_deg", "roll_deg")
 _START = ("position_m", "orientation_deg")
 SPECIAL_MATRIX = ("seed", "start", "current_m_s", "timeline")
+PLACEHOLDERS = ("endpoints", "out", "seed", "run", "python", "campaign_dir", "scenario", "case")
+_PLACEHOLDER = re.compile(r"\{([A-Za-z_]*)\}")
 MAX_CASES = 100_000
 
 
@@ -303,6 +305,27 @@ def _timeline_file(doc: Doc, folder: Path, rel: str) -> Path:
     return p
 
 
+def expand_command(command: str, values: Mapping[str, str]) -> list[str]:
+    """Split ``command`` like a shell would (no shell runs it) and fill the placeholders."""
+    import shlex
+
+    try:
+        words = shlex.split(command)
+    except ValueError as exc:
+        raise ValueError(f"cannot split the command: {exc}") from None
+    if not words:
+        raise ValueError("the command is empty")
+
+    def fill(m: re.Match[str]) -> str:
+        name = m.group(1)
+        if name not in values:
+            raise ValueError(f"unknown placeholder {{{name}}}; known: "
+                             + ", ".join("{" + k + "}" for k in PLACEHOLDERS))
+        return values[name]
+
+    return [_PLACEHOLDER.sub(fill, w) for w in words]
+
+
 def load_campaign(path: Path | str) -> Campaign:
     """Read and check a campaign file; :class:`ConfigError` (file, line, key) on any mistake."""
     doc = load_toml(path)
@@ -344,10 +367,8 @@ def load_campaign(path: Path | str) -> Campaign:
                       timeout_s=number(doc, st, "timeout_s", "stack", 600.0, lo=0.1, hi=1e6),
                       startup_timeout_s=number(doc, st, "startup_timeout_s", "stack", 60.0, lo=0.1, hi=1e4),
                       cpus=number(doc, st, "cpus", "stack", 2.0, lo=0.1, hi=1024), env=dict(env))
-        from hilsim.campaign.matrix import expand_command  # check the placeholders once
-        try:
-            expand_command(stack.command, {k: "x" for k in ("endpoints", "out", "seed", "run", "python",
-                                                            "campaign_dir", "scenario", "case")})
+        try:  # check the placeholders once
+            expand_command(stack.command, {k: "x" for k in PLACEHOLDERS})
         except ValueError as exc:
             raise doc.error("stack.command", str(exc)) from None
     else:
