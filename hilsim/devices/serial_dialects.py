@@ -107,6 +107,7 @@ class WitUart:
         self.config = wu.WitConfig(self._read, self._write, defaults={wu.BAUD: wu.BAUD_CODES[baudrate]})
         self._periodic: Optional["Periodic"] = None
         self._rate = 0.0
+        self._due = math.nan     # [s] simulation time of the next output cycle
         self._timer: Optional[asyncio.TimerHandle] = None
         self.packets = 0
         self.cycles = 0
@@ -157,6 +158,7 @@ class WitUart:
             self._periodic.cancel()
             self._periodic = None
         self._rate = rate
+        self._due = math.nan
         if rate > 0:
             self._periodic = self.ctx.every(f"{self.name}-uart", 1.0 / rate, self._tick, priority=21)
         elif code == wu.RRATE_SINGLE:
@@ -172,7 +174,16 @@ class WitUart:
         if self.config.rate != self._rate:  # RRATE written through Modbus
             self._reschedule()
             return
-        self._send(t)
+        # the device's clock is its own: cycles the scheduler passed over (a loaded host) are
+        # sent now, with the current values (at most a quarter of a second's worth at once)
+        period = 1.0 / self._rate
+        due = t if math.isnan(self._due) or t - self._due > 0.25 + period else self._due
+        n = 0
+        while due <= t + 1e-9 and n < 64:
+            self._send(t)
+            due += period
+            n += 1
+        self._due = max(due, t + period * 0.5)
 
     def _send(self, t: float) -> None:
         if self.silent():
