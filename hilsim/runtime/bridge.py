@@ -341,8 +341,11 @@ class Bridge:
         m = self.scenario.sensor(mount)
         pose = state.pose @ m.mount
         path = str(find_profile("sonars", profile, base=self.scenario.folder))
+        # the ray count adapts to the wall clock only in real time (scaled: the period is shorter on
+        # it); a virtual or lockstep clock keeps it fixed, so a seed gives the same bytes
+        wall_budget = None if budget_s is None or self.fast or self.lockstep else budget_s / self.time_scale
         frame, seconds, altitude = await self.worker.render_sonar(path, pose, settings, state.time, frame_index,
-                                                                  state.position, budget_s=budget_s)
+                                                                  state.position, budget_s=wall_budget)
         return RenderedFrame(frame, state, seconds, altitude, rays=frame.settings.elevation_rays)
 
     async def render_camera(self, mount: str, *, max_width: int = 0) -> tuple[Any, VehicleState]:
