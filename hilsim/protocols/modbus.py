@@ -39,6 +39,7 @@ MAX_TCP_LENGTH: Final = 254  # MBAP length field: unit id + PDU (max 253 bytes)
 RTU_MIN_SIZE: Final = FramerRTU.MIN_SIZE  # address, function code, CRC
 REQUEST_DECODER: Final = DecodePDU(True)  # pymodbus's request PDU decoder (server side); stateless
 
+DIALECT_MAX_BURST: Final = 16  # a dialect frame failing its check at its length: the gap decides up to this
 RTU_NEED_MORE = 0      # rtu_request_length: more bytes are needed to tell
 RTU_UNDELIMITED = -1   # rtu_request_length: the length rules cannot tell (ends at silence)
 # Request ADU lengths (address + PDU + CRC) by function code, from the Modbus application
@@ -276,6 +277,12 @@ class RtuRequestDecoder:
                     self._resyncing = False
                     self._pos = end
                     return Request(buf[pos], bytes(buf[pos + 1:end - 2]))
+                if dialect is not None and not self._resyncing:  # the dialect's device takes the burst
+                    if not final and avail <= DIALECT_MAX_BURST:  # as one frame at the gap (a wrong length)
+                        break
+                    if final and dialect.crc_ok(buf, pos, len(buf)):
+                        self._pos = len(buf)
+                        return ForeignFrame(bytes(buf[pos:]))
                 self._pos = pos + 1  # a garbled frame (or, hunting, not a frame start): look one byte on
                 if not self._resyncing:
                     self._resyncing = True

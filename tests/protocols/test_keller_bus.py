@@ -332,3 +332,27 @@ def test_keller_bus_beside_modbus_on_one_rtu_line() -> None:
         _, fn, data = ref_parse_reply(replies[3])
         assert fn == 73 and struct.unpack(">f", data[:4])[0] == pytest.approx(2.5, rel=1e-6)
         assert replies[4] == m
+
+
+def test_wrong_length_on_the_shared_line_answers_exception_3() -> None:
+    """A KELLER frame of the wrong length on the line shared with Modbus is one frame at the gap,
+    as the transmitter takes it: exception 3 (32 before F48); a garbled one stays silent."""
+    from hilsim.protocols.modbus_device import RtuSession
+
+    dev = Sensor()
+    resp = dev.responder()
+    session = RtuSession([])
+    session.add_dialect(kb.DIALECT, resp.handle_frame)
+    for cut in (1, 100):
+        resp.power_up()
+        stream = ref_frame(1, 69, 7)
+        got = [r for i in range(0, len(stream), cut) for r in session.receive_data(stream[i:i + cut])]
+        got += session.silence()
+        assert [ref_parse_reply(r) for r in got] == [(1, 69 | 0x80, bytes([32]))]
+        got = session.receive_data(ref_frame(1, 48)) + session.silence()
+        got += session.receive_data(ref_frame(1, 69, 7)) + session.silence()
+        assert ref_parse_reply(got[1]) == (1, 69 | 0x80, bytes([3]))
+        garbled = bytearray(ref_frame(1, 73, 1))
+        garbled[2] ^= 0x10
+        assert session.receive_data(bytes(garbled)) + session.silence() == []
+        assert session.stats.crc_errors >= 1
