@@ -95,13 +95,13 @@ def measure(host: str, ddf_port: int, modbus: tuple[str, int], seconds: float) -
     return r
 
 
-async def _pages(url: str, n: int, seconds: float) -> list[dict]:
+async def _pages(url: str, n: int, seconds: float, camera: bool = True) -> list[dict]:
     import aiohttp
 
     async def one() -> dict:
         got = {"state": 0, "sonar": 0, "camera": 0, "bytes": 0}
         async with aiohttp.ClientSession() as s, s.ws_connect(url + "ws", max_msg_size=0) as ws:
-            await ws.send_str(json.dumps({"op": "camera", "show": True}))
+            await ws.send_str(json.dumps({"op": "camera", "show": camera}))
             end = time.monotonic() + seconds
             while time.monotonic() < end:
                 try:
@@ -112,6 +112,7 @@ async def _pages(url: str, n: int, seconds: float) -> list[dict]:
                     got["bytes"] += len(msg.data)
                     if '"type":"state"' in msg.data[:20]:
                         got["state"] += 1
+                        got["console"] = json.loads(msg.data)["devices"].get("console", {})
                 elif msg.type == aiohttp.WSMsgType.BINARY:
                     got["bytes"] += len(msg.data)
                     (k,) = struct.unpack(">I", msg.data[:4])
@@ -123,19 +124,20 @@ async def _pages(url: str, n: int, seconds: float) -> list[dict]:
     return list(await asyncio.gather(*(one() for _ in range(n))))
 
 
-def page_main(url: str, n: int, seconds: float) -> None:
+def page_main(url: str, n: int, seconds: float, camera: bool) -> None:
     """Child process: ``n`` page-like WebSocket clients for ``seconds``; prints what they got as JSON."""
-    print(json.dumps(asyncio.run(_pages(url, n, seconds))), flush=True)
+    print(json.dumps(asyncio.run(_pages(url, n, seconds, camera))), flush=True)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--pages", type=int, default=3)
+    ap.add_argument("--no-camera", action="store_true", help="the pages hide the camera (default: they show it)")
     ap.add_argument("--page-client", nargs=3, metavar=("URL", "N", "SECONDS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.page_client:
-        page_main(args.page_client[0], int(args.page_client[1]), float(args.page_client[2]))
+        page_main(args.page_client[0], int(args.page_client[1]), float(args.page_client[2]), not args.no_camera)
         return
     tmp = Path(tempfile.mkdtemp())
     ep = tmp / "ep.json"
@@ -158,18 +160,24 @@ def main() -> None:
               f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
         base = measure(host, int(port), (mhost, int(mport)), args.seconds)
         pages = subprocess.Popen([sys.executable, __file__, "--page-client", url, str(args.pages),
-                                  str(args.seconds + 3.0)], stdout=subprocess.PIPE, text=True)
+                                  str(args.seconds + 3.0)] + (["--no-camera"] if args.no_camera else []),
+                                 stdout=subprocess.PIPE, text=True)
         time.sleep(1.5)
         with_pages = measure(host, int(port), (mhost, int(mport)), args.seconds)
         got = json.loads(pages.communicate(timeout=60)[0] or "[]")
-        for label, r in (("no page", base), (f"{args.pages} pages", with_pages)):
-            print(f"  {label:>8}: {r['rate_mean']:.1f} frames/s per DDF client (slowest {r['rate_min']:.1f}); "
+        shown = "hidden" if args.no_camera else "shown"
+        for label, r in (("no page", base), (f"{args.pages} pages (camera {shown})", with_pages)):
+            print(f"  {label}: {r['rate_mean']:.1f} frames/s per DDF client (slowest {r['rate_min']:.1f}); "
                   f"ping-to-client p50 {r['p50']:.1f} ms, p99 {r['p99']:.1f} ms; Modbus p50 {r['modbus_p50']:.2f} ms, "
                   f"p99 {r['modbus_p99']:.2f} ms")
         print(f"  pages vs none: DDF p99 {100 * (with_pages['p99'] / base['p99'] - 1):+.1f} %, "
               f"Modbus p99 {with_pages['modbus_p99'] - base['modbus_p99']:+.2f} ms; "
               f"load {os.getloadavg()[0]:.2f}")
         span = args.seconds + 3.0
+        c = got[0].get("console", {}) if got else {}
+        if c.get("ticks"):
+            print(f"  the console's own time on the bridge's loop: {c['tick_ms'] / c['ticks']:.2f} ms per update "
+                  f"(10 a second for all pages: {c['tick_ms'] / c['ticks']:.1f} % of a core)")
         for i, g in enumerate(got):
             print(f"  page {i + 1}: {g['state'] / span:.1f} states/s, {g['sonar'] / span:.1f} sonar frames/s, "
                   f"{g['camera'] / span:.1f} camera pictures/s, {g['bytes'] / span / 1e6:.2f} MB/s")

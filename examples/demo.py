@@ -18,6 +18,7 @@ No hilsim import: the bridge is another process, reached only through its endpoi
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import signal
@@ -106,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             time.sleep(0.1)
         print(f"demo: bridge up (pid {bridge.pid}, log {log_path}); running the mission", flush=True)
+        console = [e["url"] for e in json.loads(endpoints.read_text()) if e.get("device") == "console"]
+        if console:
+            print(f"demo: watch it live in a browser: {console[0]}", flush=True)
         mcmd = [sys.executable, str(HERE / "mission.py"), str(endpoints), "--out", str(a.out), *mission_args]
         mission = subprocess.Popen(mcmd)
         while mission_rc is None:

@@ -110,6 +110,7 @@ class Hub:
         self._tick_task: asyncio.Task[None] | None = None
         self._track_handle: Any = None
         self.ticks = 0
+        self.tick_seconds = 0.0   # [s] of the loop spent building and offering page updates
         #: more rows for the endpoints table: name -> status() (the console itself, the recorder)
         self.extra_status: dict[str, Callable[[], Mapping[str, Any]]] = {}
 
@@ -175,7 +176,7 @@ class Hub:
         page.show_camera = show
         if self.camera is not None:
             if show:
-                self.camera.want(page, 5.0)
+                self.camera.want(page, 4.0)
             else:
                 self.camera.unwant(page)
 
@@ -186,7 +187,9 @@ class Hub:
                 self.tick()
             except Exception:  # noqa: BLE001 - a console bug must not stop the bridge
                 log.exception("console tick failed")
-            await asyncio.sleep(max(0.0, TICK_S - (time.monotonic() - t0)))
+            used = time.monotonic() - t0
+            self.tick_seconds += used
+            await asyncio.sleep(max(0.0, TICK_S - used))
 
     def tick(self) -> None:
         """Offer the state and each new sonar frame to every page."""

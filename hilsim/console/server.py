@@ -148,7 +148,9 @@ class Console:
         pages = list(self.hub.pages)
         return {"clients": len(pages), "sent": sum(p.sent for p in pages),
                 "dropped": sum(p.dropped for p in pages), "refused": self.refused_pages + self.refused_connections,
-                "bad_messages": self.bad_messages, **({"last_error": self.last_error} if self.last_error else {})}
+                "bad_messages": self.bad_messages, "ticks": self.hub.ticks,
+                "tick_ms": round(self.hub.tick_seconds * 1e3, 1),
+                **({"last_error": self.last_error} if self.last_error else {})}
 
     # -- handlers -----------------------------------------------------------------
     async def _index(self, request: web.Request) -> web.Response:

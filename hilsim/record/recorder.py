@@ -111,8 +111,15 @@ class Recorder:
                                                   "log_time": "epoch_s + simulation time"})
         if self.foxglove_port is not None:
             host = getattr(self.bridge, "bind", "127.0.0.1")
-            self.server = foxglove.start_server(name=f"hilsim {self.bridge.scenario.name}", host=host,
-                                                port=int(self.foxglove_port), context=self.ctx)
+            name = f"hilsim {self.bridge.scenario.name}"
+            try:
+                self.server = foxglove.start_server(name=name, host=host, port=int(self.foxglove_port),
+                                                    context=self.ctx)
+            except RuntimeError as exc:  # the port is taken (another bridge): a free one, said loudly
+                if int(self.foxglove_port) == 0:
+                    raise
+                log.warning("Foxglove port %s is taken (%s); serving on a free port instead", self.foxglove_port, exc)
+                self.server = foxglove.start_server(name=name, host=host, port=0, context=self.ctx)
             endpoints.append(Endpoint("foxglove", "foxglove-ws", "tcp", f"{host}:{self.server.port}",
                                       {"url": f"ws://{host}:{self.server.port}"}))
             log.info("Foxglove WebSocket server on ws://%s:%d", host, self.server.port)
