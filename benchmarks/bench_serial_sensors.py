@@ -197,8 +197,8 @@ def main() -> None:
         t.start()
         time.sleep(1.0)
         report("sonar streaming (RATE 30), 20 Hz polling", keller_rtts(keller, n, 20.0))
-        print(f"  (on the wire: the reply alone takes {9 * 10 / 9600 * 1e3:.2f} ms, request and reply "
-              f"{14 * 10 / 9600 * 1e3:.2f} ms)")
+        print(f"  (the 9-byte reply takes {9 * 10 / 9600 * 1e3:.2f} ms on the wire at 9600 baud; the pty does "
+              f"not pace the master's request)")
         print("WitMotion UART stream at 115200 baud, angles + quaternion, sonar streaming:")
         for code, hz in ((0x06, 10.0), (0x09, 100.0), (0x0B, 200.0)):
             rate, gaps = wit_rate(uart, code, args.seconds)
