@@ -209,7 +209,9 @@ def test_every_decoder_has_a_target() -> None:
     slcan, VESC CAN and UART, DroneCAN, VRCSR, Modbus TCP and RTU requests through pymodbus."""
     assert set(TARGETS) == {"ddf-stream", "ddf-commands", "oculus", "aris-commands", "aris-frames", "socketcand",
                             "slcan", "vesc-uart", "vrcsr", "vesc-can", "dronecan", "modbus-tcp", "modbus-rtu",
-                            "keller-bus", "witmotion-commands", "witmotion-packets"}
+                            "keller-bus", "witmotion-commands", "witmotion-packets",  # issue #17
+                            "dvl-json", "dvl-serial", "nmea", "ping-protocol",         # the navigation suite
+                            "ping360"}                                                 # issue #20
     for t in TARGETS.values():
         assert t.samples() and t.oversize() and t.bound > 0 and t.measure
 
