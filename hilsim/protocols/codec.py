@@ -28,6 +28,12 @@ or, the same thing, ``for ev in drain(dec, chunk): ...``.
 
 Line protocols (NMEA 0183, JSON lines, text commands) frame with :class:`LineFramer`.
 File readers take ``bytes`` or a binary stream (``typing.BinaryIO``), never a path.
+
+Decoders of whole link units follow the same contract with the unit in place of a
+byte chunk: a datagram decoder's ``receive_data(datagram)`` takes exactly one
+datagram (UDP keeps their bounds: ``aris.FrameAssembler``); a CAN decoder takes
+``receive_frame(frame, now)`` (``dronecan.TransferReceiver``). Either is drained
+with ``next_event()`` as above.
 """
 
 from __future__ import annotations
