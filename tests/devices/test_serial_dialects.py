@@ -14,6 +14,7 @@ community's own clients on the bridge's real ptys:
 from __future__ import annotations
 
 import asyncio
+import datetime as dt
 import math
 import os
 import select
@@ -237,6 +238,16 @@ def test_witmotion_uart_through_the_bridge(tmp_path: Path) -> None:
             assert ref_packets(await asyncio.to_thread(capture, e.address, 0.5)) == []
             dev.clear_fault("dropout")
             assert len(ref_packets(await asyncio.to_thread(capture, e.address, 0.5))) > 20
+            # the time packet 0x50: YY MM DD hh mm ss, ms (uint16), the bridge's UTC wall time
+            cmds = b"".join(bytes([0xFF, 0xAA, reg]) + struct.pack("<H", v) for reg, v in ((0x69, 0xB588), (0x02, 1)))
+            await asyncio.to_thread(xfer, e.address, cmds, 0, 0.05)
+            await asyncio.sleep(0.2)
+            seen = ref_packets(await asyncio.to_thread(capture, e.address, 0.3))
+            assert seen and {k for k, _ in seen} == {0x50}
+            raw = struct.pack("<4h", *seen[-1][1])
+            yy, mo, dd, hh, mi, ss, ms = struct.unpack("<6BH", raw)
+            stamp = dt.datetime(2000 + yy, mo, dd, hh, mi, ss, ms * 1000, tzinfo=dt.timezone.utc).timestamp()
+            assert stamp == pytest.approx(bridge.wall_time(bridge.now()), abs=1.0)
 
     asyncio.run(main())
 
