@@ -98,7 +98,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp())
     ep = tmp / "ep.json"
     proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", "--endpoints", str(ep), "--log-level", "WARNING",
-                             "--status-interval", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             "--status-interval", "0", "--no-console"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     hogs: list = []
     try:
         while not ep.exists():
