@@ -94,7 +94,8 @@ def test_default_run_exposes_only_loopback_and_keeps_ptys_in_the_run_folder(tmp_
                 if k in e:
                     assert e[k].startswith("udp 127.0.0.1:"), e
         ptys = [e for e in eps if e["transport"] in ("pty", "slcan")]
-        assert len(ptys) == 5
+        assert len(ptys) >= 10   # every serial device of the default scenario (Modbus, KELLER bus, WitMotion UART,
+        # slcan, VESC UART, VRCSR, DVL, GNSS, Ping1D, ...): the count grows with the scenario
         run_dirs = {Path(e["address"]).parent for e in ptys}
         assert len(run_dirs) == 1  # one run folder, a fresh temporary one
         run_dir = run_dirs.pop()
