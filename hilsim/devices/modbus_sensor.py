@@ -319,7 +319,9 @@ class KellerDevice(ModbusSensorDevice):
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
         self.option_int("rtu_tcp_port", 0, 65535)
-        self.keller = KellerBus(name, self.image, self.target, self.zero_p1)
+        profile = self.sensor.profile  # type: ignore[attr-defined]
+        self.keller = KellerBus(name, self.image, self.target, self.zero_p1, offset=lambda: self.zero,
+                                set_offset=self._set_offset, pressure_range=(profile.range_min, profile.range_max))
         self.line_tcp: SerialLineTcpServer | None = None
 
     async def start(self) -> list[Endpoint]:
@@ -362,6 +364,12 @@ class KellerDevice(ModbusSensorDevice):
             self.zero = raw - setpoint
         log.info("%s: P1 zero point %.5f bar", self.name, self.zero / 1e5)
         if self.last_reading is not None:  # the registers show the zeroed value at once
+            self.image.update(self.signals(self.last_reading), self.image.time)
+
+    def _set_offset(self, offset: float) -> None:
+        """[Pa] the P1 zero point as KELLER coefficient 64 writes it (P1 = raw - offset)."""
+        self.zero = float(offset)
+        if self.last_reading is not None:
             self.image.update(self.signals(self.last_reading), self.image.time)
 
     def status(self) -> dict[str, float]:

@@ -45,16 +45,22 @@ class KellerBus:
     line (an address they use is refused)."""
 
     def __init__(self, name: str, image: RegisterImage, target: "ModbusTarget",
-                 zero: Any, line_targets: Optional[list["ModbusTarget"]] = None) -> None:
+                 zero: Any, line_targets: Optional[list["ModbusTarget"]] = None, *,
+                 offset: Any = lambda: 0.0, set_offset: Any = None,
+                 pressure_range: tuple[float, float] = (math.nan, math.nan)) -> None:
         self.name = name
         self.image = image
         self.target = target
         self.zero = zero
+        self.offset = offset                  # () -> [Pa] the zero point subtracted from P1
+        self.set_offset = set_offset          # ([Pa]) -> None
+        self.pressure_range = pressure_range  # [Pa] absolute, of P1
         self.line_targets = line_targets if line_targets is not None else []
         self.responder = kb.KellerResponder(
             get_address=lambda: self.target.device_id, set_address=self._set_address,
             serial_number=lambda: int(self.image.values.get("serial_number", 0)),
-            read_channel=self._channel, set_zero=self._set_zero)
+            read_channel=self._channel, set_zero=self._set_zero,
+            coefficient=self._coefficient, write_coefficient=self._write_coefficient)
 
     def handle_frame(self, frame: bytes) -> Optional[bytes]:
         """A KELLER frame from the line (CRC checked) -> the reply, or None (not ours, broadcast,
@@ -66,6 +72,22 @@ class KellerBus:
     def _channel(self, ch: int) -> float:
         value = float(self.image.values.get(kb.CHANNELS[ch][0], math.nan))
         return value * 1e5 if ch <= 2 else value + 273.15
+
+    def _coefficient(self, nr: int) -> Optional[float]:
+        """F30: 64 the P1 offset [bar] (P1 = raw - offset), 65 its gain, 80/81 P1's range [bar]."""
+        if nr == kb.COEFF_OFFSET_P1:
+            return float(self.offset()) / 1e5
+        if nr == kb.COEFF_GAIN_P1:
+            return 1.0
+        if nr in (kb.COEFF_P1_MIN, kb.COEFF_P1_MAX):
+            return self.pressure_range[nr - kb.COEFF_P1_MIN] / 1e5
+        return None
+
+    def _write_coefficient(self, nr: int, value: float) -> bool:
+        if nr == kb.COEFF_OFFSET_P1 and self.set_offset is not None and math.isfinite(value):
+            self.set_offset(value * 1e5)
+            return True
+        return False
 
     def _set_address(self, new: int) -> bool:
         if not 1 <= new <= 247 or any(t is not self.target and t.device_id == new for t in self.line_targets):

@@ -65,6 +65,13 @@ REQUEST_LENGTHS: Final[dict[int, tuple[int, ...]]] = {
     101: (10,),    # write configuration: index, 5 bytes
 }
 MAX_REQUEST: Final = 10
+MAX_COEFFICIENT: Final = 111      # F30/F31: "exception 2 if no. > 111"
+# F30 coefficients (IEEE754, bar / deg C): 64 offset P1, 65 gain P1, 66/67 P2, 70/71 CH0,
+# 80/81 min/max pressure of P1, 82/83 of P2, 84/85 min/max T, 86/87 TOB1, 88/89 TOB2, 100-111 free.
+COEFF_OFFSET_P1: Final = 64
+COEFF_GAIN_P1: Final = 65
+COEFF_P1_MIN: Final = 80
+COEFF_P1_MAX: Final = 81
 MIN_FRAME: Final = 4              # "the length of a message from the master is at least 4 bytes"
 MAX_FRAME: Final = 16             # a burst longer than this with no frame in it is hunted through
 
@@ -389,13 +396,21 @@ class KellerResponder:
     P1, P2; K for T, TOB1, TOB2; NaN = channel error or not fitted), ``set_zero(cmd,
     setpoint_pa)`` (F95: cmd 0/2/6 set zero of P1/P2/CH0 so the value reads the setpoint
     [Pa] (0 without one), 1/3/7 reset; may raise :class:`KellerError`). ``active``: the
-    channels fitted (their STAT bits flag a NaN). Power-up state: not initialised.
+    channels fitted (their STAT bits flag a NaN). ``coefficient(nr)``: F30's value in its wire
+    unit (bar, deg C; None: what F31 stored, 0 if nothing); ``write_coefficient(nr, value)``:
+    F31, True when the device acts on it (else the value is only stored). Power-up state:
+    not initialised.
     """
 
     def __init__(self, *, get_address: Callable[[], int], set_address: Callable[[int], bool],
                  serial_number: Callable[[], int], read_channel: Callable[[int], float],
                  set_zero: Callable[[int, Optional[float]], None], identity: Identity = Identity(),
-                 active: frozenset[int] = frozenset({1, 3, 4})) -> None:
+                 active: frozenset[int] = frozenset({1, 3, 4}),
+                 coefficient: Optional[Callable[[int], Optional[float]]] = None,
+                 write_coefficient: Optional[Callable[[int, float], bool]] = None) -> None:
+        self.coefficient = coefficient or (lambda nr: None)
+        self.write_coefficient = write_coefficient or (lambda nr, value: False)
+        self.stored: dict[int, float] = {}  # coefficients written that the device does not act on
         self.get_address = get_address
         self.set_address = set_address
         self.serial_number = serial_number
@@ -490,6 +505,18 @@ class KellerResponder:
                 raise KellerError(EXC_LENGTH, f"F95 command {cmd} takes no setpoint")
             self.set_zero(cmd, setpoint)
             return encode_f95(address)
+        if function in (30, 31):
+            nr = data[0]
+            if nr > MAX_COEFFICIENT:
+                raise KellerError(EXC_PARAMETER, f"coefficient {nr}")
+            if function == 30:
+                value = self.coefficient(nr)
+                return encode_frame(address, 30, struct.pack(">f", self.stored.get(nr, 0.0) if value is None
+                                                             else value))
+            value = struct.unpack(">f", data[1:5])[0]
+            if not self.write_coefficient(nr, value):
+                self.stored[nr] = value
+            return encode_frame(address, 31, b"\x00")
         raise KellerError(EXC_FUNCTION, f"F{function} not implemented")
 
 
@@ -503,4 +530,4 @@ __all__ = ["BROADCAST", "CHANNELS", "EXC_CHANNEL", "EXC_FUNCTION", "EXC_LENGTH",
            "MAX_FRAME", "NEED_MORE", "REQUEST_LENGTHS", "TRANSPARENT", "UNDELIMITED", "WrongLength", "crc16",
            "crc_ok", "encode_exception", "encode_f48", "encode_f66", "encode_f69", "encode_f73", "encode_f74",
            "encode_f95", "encode_frame", "is_keller_function", "keller_request_length", "DIALECT", "KellerDialect",
-           "request_from_frame"]
+           "request_from_frame", "COEFF_GAIN_P1", "COEFF_OFFSET_P1", "COEFF_P1_MAX", "COEFF_P1_MIN", "MAX_COEFFICIENT"]

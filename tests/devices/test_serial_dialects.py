@@ -113,10 +113,13 @@ def test_keller_bus_through_the_bridge(tmp_path: Path) -> None:
             p1 = await run(bus.f73, 1, 1)
             assert depth_of(p1) == pytest.approx(bridge.vehicle.state.depth, abs=DEPTH_TOL + 0.02)
             assert await run(bus.f73, 1, 4) == pytest.approx(15.0, abs=0.5)   # TOB1: the tank's 15 deg C
+            assert (await run(bus.f30, 1, 80), await run(bus.f30, 1, 81)) == (0.0, 30.0)  # the profile's range
             await run(bus.f95, 1, 0)                             # set zero P1: shared with Modbus
             assert abs(await run(bus.f73, 1, 1)) < 0.003
             assert abs(await modbus_p1(e.address, 1)) < 0.003
+            assert await run(bus.f30, 1, 64) == pytest.approx(p1, abs=0.003)  # the offset now: P1 at zeroing
             await run(bus.f95, 1, 1)                             # reset
+            assert await run(bus.f30, 1, 64) == 0.0
             assert depth_of(await run(bus.f73, 1, 1)) == pytest.approx(bridge.vehicle.state.depth,
                                                                        abs=DEPTH_TOL + 0.02)
             assert await run(bus.f66, 1, 5) == 5                 # one address for both protocols

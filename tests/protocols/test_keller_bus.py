@@ -62,6 +62,20 @@ def test_manual_frames_and_crc() -> None:
         assert kb.encode_frame(body[0], body[1], body[2:]) == ref_frame(*body)
 
 
+def test_the_manuals_example_exchanges() -> None:
+    """Chapter 5.1's table of requests and responses, byte for byte (values as printed there)."""
+    assert ref_frame(1, 73, 1) == bytes([1, 73, 1, 80, 214])
+    assert ref_frame(250, 73, 4) == bytes([250, 73, 4, 162, 103])
+    assert ref_frame(1, 48) == bytes([1, 48, 52, 0])
+    assert kb.encode_f73(250, struct.unpack(">f", bytes([63, 109, 186, 172]))[0], 0) == \
+        bytes([250, 73, 63, 109, 186, 172, 0, 26, 27])                   # 0.9286296 bar
+    assert kb.encode_f73(250, struct.unpack(">f", bytes([65, 201, 184, 0]))[0], 0) == \
+        bytes([250, 73, 65, 201, 184, 0, 0, 224, 204])                   # 25.21484 deg C
+    assert struct.unpack(">f", bytes([63, 109, 186, 172]))[0] == pytest.approx(0.9286296, abs=1e-7)
+    reply = kb.encode_f48(1, 5, 20, 5, 50, 10, 1)                        # "FW=5.20-5.50, Buffer=10,
+    assert reply[:4] == bytes([1, 48, 5, 20]) and ref_parse_reply(reply)[2] == bytes([5, 20, 5, 50, 10, 1])
+
+
 def test_request_lengths_and_dispatch_rule() -> None:
     assert kb.keller_request_length(ref_frame(250, 48)) == 4
     assert kb.keller_request_length(ref_frame(250, 73, 1)) == 5
@@ -224,7 +238,35 @@ def test_f95_f66_addressing() -> None:
     assert dev.address == 9 and ask(resp, 1, 69) is None
     assert ask(resp, 9, 66, 251) == (9, 66, bytes([9]))               # out of 1..249: refused, confirmed
     assert ask(resp, 0, 95, 0) is None                                # broadcast: done, no reply
-    assert ask(resp, 9, 31, 64, 0, 0, 0, 0) == (9, 31 | 0x80, bytes([1]))  # not modelled
+    assert ask(resp, 9, 32, 0) == (9, 32 | 0x80, bytes([1]))            # configuration: not modelled
+
+
+def test_f30_f31_coefficients() -> None:
+    """F30 reads a coefficient as float32 (64: P1 offset [bar], 80/81: P1 range); > 111 is
+    exception 2; F31 writes one (64 moves the zero point), answered ``DevAddr 31 0``."""
+    dev = Sensor()
+    offset = [0.0]
+
+    def write(nr: int, value: float) -> bool:
+        if nr == 64:
+            offset[0] = value
+            dev.zero = value * 1e5
+            return True
+        return False
+
+    resp = kb.KellerResponder(get_address=lambda: dev.address, set_address=dev.set_address,
+                              serial_number=lambda: dev.serial, read_channel=dev.channel, set_zero=dev.set_zero,
+                              coefficient=lambda nr: {64: offset[0], 80: 0.0, 81: 30.0}.get(nr),
+                              write_coefficient=write)
+    ask(resp, 1, 48)
+    assert ask(resp, 1, 30, 81) == (1, 30, struct.pack(">f", 30.0))
+    assert ask(resp, 1, 30, 112) == (1, 30 | 0x80, bytes([2]))
+    assert ask(resp, 1, 31, 64, *struct.pack(">f", 0.5)) == (1, 31, b"\x00")
+    assert ask(resp, 1, 30, 64) == (1, 30, struct.pack(">f", 0.5))
+    _, _, data = ask(resp, 1, 73, 1)  # type: ignore[misc]
+    assert struct.unpack(">f", data[:4])[0] == pytest.approx(2.0, rel=1e-6)   # 2.5 bar - 0.5
+    assert ask(resp, 1, 31, 105, *struct.pack(">f", 7.25)) == (1, 31, b"\x00")  # a customer coefficient
+    assert ask(resp, 1, 30, 105) == (1, 30, struct.pack(">f", 7.25))
 
 
 # ----------------------------------------------------------------------------- peer: keller-protocol
