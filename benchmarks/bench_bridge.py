@@ -11,8 +11,11 @@ Starts ``hilsim run`` on the water tank (real-time clock), connects 1 and then
     their period), min / median / max.
 ``--hog N`` runs N CPU-burning processes beside the bridge while it measures (a busy
 machine: the user's own stack and tools), each bounded in time; the load average is
-printed with the figures. Prints figures; never passes or fails.
-Usage: python benchmarks/bench_bridge.py [--seconds 10] [--hog N]
+printed with the figures. ``--fixed-rays``: the same with the sonar profile's
+``adaptive_rays = false`` (a copy of the scenario and of the DIDSON profile in a
+temporary folder), to compare with the adaptive ray count under the same load.
+Prints figures; never passes or fails.
+Usage: python benchmarks/bench_bridge.py [--seconds 10] [--hog N] [--fixed-rays]
 """
 
 from __future__ import annotations
@@ -94,10 +97,20 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--hog", type=int, default=0, metavar="N", help="N CPU-burning processes beside the bridge")
+    ap.add_argument("--fixed-rays", action="store_true", help="the sonar profile with adaptive_rays = false")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
     ep = tmp / "ep.json"
-    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", "--endpoints", str(ep), "--log-level", "WARNING",
+    scenario: list[str] = []
+    if args.fixed_rays:  # a scenario's own profile comes before the bundled one of the same name
+        (tmp / "sonars").mkdir()
+        text = (ROOT / "devices" / "sonars" / "didson_hf.toml").read_text()
+        assert "adaptive_rays      = true" in text
+        (tmp / "sonars" / "didson_hf.toml").write_text(text.replace("adaptive_rays      = true",
+                                                                    "adaptive_rays      = false"))
+        (tmp / "scenario.toml").write_text((ROOT / "scenarios" / "water_tank" / "scenario.toml").read_text())
+        scenario = [str(tmp / "scenario.toml")]
+    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", *scenario, "--endpoints", str(ep), "--log-level", "WARNING",
                              "--status-interval", "0", "--no-console"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     hogs: list = []
     try:
@@ -109,7 +122,8 @@ def main() -> None:
         host, port = e["address"].rsplit(":", 1)
         print(f"DIDSON-like stream, water tank, profile rate {e['frame_rate_hz']} Hz, 96 x 512 samples, "
               f"96 x 1000 rays; {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f} before"
-              + (f"; {args.hog} CPU hog(s) beside the bridge" if args.hog else ""))
+              + (f"; {args.hog} CPU hog(s) beside the bridge" if args.hog else "")
+              + ("; fixed ray count (adaptive_rays = false)" if args.fixed_rays else "; adaptive ray count"))
         if args.hog:  # bounded: they stop by themselves after the measurements, and are killed at the end
             ctx = mp.get_context("spawn")
             hogs = [ctx.Process(target=hog, args=(2 * args.seconds + 20,), daemon=True) for _ in range(args.hog)]
