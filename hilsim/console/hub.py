@@ -100,6 +100,7 @@ class Hub:
         self.sonar: dict[str, Mapping[str, Any]] = {}
         self._sonar_sent: dict[str, int] = {}
         self._sonar_seq: dict[str, int] = {}
+        self._bad_sonar: set[str] = set()
         self.readings: dict[str, dict[str, Any]] = {}
         self.commands: dict[int, dict[str, Any]] = {}
         self.faults: deque[dict[str, Any]] = deque(maxlen=20)
@@ -201,7 +202,13 @@ class Hub:
             if self._sonar_sent.get(dev) == seq or dev not in self.sonar:
                 continue
             self._sonar_sent[dev] = seq
-            data = encode_sonar(dev, self.sonar[dev])
+            try:
+                data = encode_sonar(dev, self.sonar[dev])
+            except (KeyError, ValueError, TypeError, IndexError) as exc:  # a frame we cannot draw
+                if dev not in self._bad_sonar:
+                    self._bad_sonar.add(dev)
+                    log.warning("console: cannot show the frames of %s: %s", dev, exc)
+                continue
             for p in list(self.pages):
                 p.offer("sonar:" + dev, data)
 

@@ -92,6 +92,23 @@ def test_the_page_shows_the_bridge_live_without_javascript_errors(page, bridge):
     assert not page.problems, page.problems
 
 
+def test_a_screenshot(page, tmp_path):
+    shot = tmp_path / "console.png"
+    page.evaluate("window.scrollTo(0, 0)")  # taken before the tests below move the vehicle
+    assert wait_for(lambda: stats(page)["sonarFrames"].get(SONAR, 0) > 0 and stats(page)["cameraFrames"] > 0, 10)
+    page.screenshot(path=str(shot), full_page=False)
+    from PIL import Image
+
+    with Image.open(shot) as im:
+        assert im.size == (1400, 1250)
+        assert len(set(im.convert("L").resize((64, 64)).getdata())) > 20   # not a blank page
+    keep = os.environ.get("HILSIM_CONSOLE_SHOT")
+    if keep:  # a palette PNG: small enough for the README
+        Path(keep).parent.mkdir(parents=True, exist_ok=True)
+        with Image.open(shot) as im:
+            im.convert("RGB").quantize(128).save(keep, optimize=True)
+
+
 def test_the_sonar_fan_changes_frame_to_frame(page):
     a = page.evaluate(BRIGHT_JS, f"sonar-{SONAR}")
     b = wait_for(lambda: (x := page.evaluate(BRIGHT_JS, f"sonar-{SONAR}"))["frame"] > a["frame"] and x, 5)
@@ -171,20 +188,3 @@ def test_the_fault_button_silences_the_keller_and_clear_restores_it(page, bridge
     assert wait_for(lambda: "dropout" not in page.text_content("#active-faults"), 3)
     assert "fault dropout on depth injected" in bridge.log() or "dropout" in bridge.log()
     assert not page.problems, page.problems
-
-
-def test_a_screenshot(page, tmp_path):
-    shot = tmp_path / "console.png"
-    page.evaluate("window.scrollTo(0, 0)")
-    assert wait_for(lambda: stats(page)["sonarFrames"].get(SONAR, 0) > 0 and stats(page)["cameraFrames"] > 0, 10)
-    page.screenshot(path=str(shot), full_page=False)
-    from PIL import Image
-
-    with Image.open(shot) as im:
-        assert im.size == (1400, 1250)
-        assert len(set(im.convert("L").resize((64, 64)).getdata())) > 20   # not a blank page
-    keep = os.environ.get("HILSIM_CONSOLE_SHOT")
-    if keep:  # a palette PNG: small enough for the README
-        Path(keep).parent.mkdir(parents=True, exist_ok=True)
-        with Image.open(shot) as im:
-            im.convert("RGB").quantize(128).save(keep, optimize=True)

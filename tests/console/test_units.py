@@ -114,3 +114,33 @@ def test_jsonable_and_log_time():
     assert out == {"a": 1.5, "b": [1, 2], "c": None, "e": [3]}
     json.dumps(out, allow_nan=False)
     assert time_ns(1_700_000_000.0, 2.5) == 1_700_000_002_500_000_000
+
+
+def test_a_frame_the_console_cannot_draw_is_skipped_and_said_once(caplog):
+    from hilsim.console.hub import Hub
+    from hilsim.runtime.observe import Observers
+
+    class Page:
+        show_camera = False
+
+        def __init__(self):
+            self.got = []
+
+        def offer(self, kind, data):
+            self.got.append(kind)
+
+    hub = Hub.__new__(Hub)                     # only the frame path: no bridge, no loop
+    hub.pages, hub.sonar, hub._sonar_sent, hub._sonar_seq, hub._bad_sonar = set(), {}, {}, {}, set()
+    hub.ticks, hub.state = 0, lambda: {"type": "state"}
+    obs = Observers()
+    obs.subscribe("sonar/*", hub._on_sonar)
+    page = Page()
+    hub.pages.add(page)
+    for _ in range(3):
+        obs.publish("sonar/odd", {"t": 0.0, "image": np.zeros((4, 4), np.uint8)})   # no azimuths, no range
+        hub.tick()
+    obs.publish("sonar/good", {"t": 0.0, "image": np.zeros((4, 2), np.uint8), "azimuths": [-0.1, 0.1],
+                               "range_min": 1.0, "range_max": 2.0})
+    hub.tick()
+    assert page.got.count("sonar:odd") == 0 and page.got.count("sonar:good") == 1
+    assert sum("cannot show the frames of odd" in r.message for r in caplog.records) == 1

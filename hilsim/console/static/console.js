@@ -137,8 +137,11 @@ function onState(s) {
   $("nav-speed").textContent = fmt(v.speed_m_s);
   $("nav-pose").textContent = `position N ${fmt(v.position[0])} E ${fmt(v.position[1])} D ${fmt(v.position[2])} m, ` +
     `roll ${fmt(v.rpy_deg[0], 1)} pitch ${fmt(v.rpy_deg[1], 1)} deg`;
-  $("readings").textContent = Object.entries(s.readings).map(([d, r]) =>
-    `${d}: ` + Object.entries(r).slice(0, 6).map(([k, x]) => `${k}=${Array.isArray(x) ? x.map((y) => fmt(y)).join("/") : typeof x === "number" ? fmt(x, 3) : x}`).join(" ")).join(" | ");
+  const rd = $("readings"); rd.textContent = "";
+  for (const [d, r] of Object.entries(s.readings)) {
+    rd.append(el("div", {}, `${d}: ` + Object.entries(r).slice(0, 5).map(([k, x]) =>
+      `${k} ${Array.isArray(x) ? x.map((y) => fmt(y)).join("/") : typeof x === "number" ? fmt(x, 3) : x}`).join(", ")));
+  }
   const last = track[track.length - 1];
   if (!last || Math.hypot(last[0] - v.position[0], last[1] - v.position[1], last[2] - v.position[2]) > 0.02) {
     track.push(v.position.slice());
