@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from auv_sonar import Detection
 from auv_vehicle import (
+    DVL_DOWN,
     HEAVE,
     SONAR_DOWN,
     SONAR_HALF_ELEVATION_DEG,
@@ -56,6 +57,11 @@ class AxisObserver:
         self.x += self.alpha * r
         self.v += self.beta * r / dt
 
+    def correct_rate(self, measured: float, gain: float) -> None:
+        """A measured rate (a DVL's velocity) pulls the estimate by ``gain`` of the difference."""
+        if math.isfinite(measured):
+            self.v += gain * (measured - self.v)
+
 
 class TargetTrack:
     """Horizontal distance ``d`` [m] from the sonar to the target's foot, from the detections;
@@ -79,6 +85,14 @@ class TargetTrack:
         self.speed_bias = 0.0   # [m/s] added to the model's surge speed
         self.last = -math.inf   # sim time of the last detection used
         self.history: deque[tuple[float, float]] = deque(maxlen=100)  # (t, d) estimates
+        self.floor_source = "sonar"   # "dvl" once the DVL measures the floor: the sonar's band is not used
+
+    def dvl_floor(self, floor_depth: float) -> None:
+        """[m] the floor's depth from a DVL (vehicle depth + DVL_DOWN + its altitude)."""
+        if math.isfinite(floor_depth):
+            self.floor_source = "dvl"
+            self.floors.append(floor_depth)
+            self.floor_depth = float(np.median(self.floors))
 
     @staticmethod
     def height(det: Detection) -> float:
@@ -102,7 +116,8 @@ class TargetTrack:
 
     def measure(self, t: float, det: Detection, depth_then: float) -> None:
         """A frame pinged at t [s], when the vehicle was at ``depth_then`` [m]."""
-        if math.isfinite(det.floor_far) and math.isfinite(det.floor_near) and math.isfinite(depth_then):
+        if (self.floor_source == "sonar" and math.isfinite(det.floor_far) and math.isfinite(det.floor_near)
+                and math.isfinite(depth_then)):
             self.floors.append(depth_then + SONAR_DOWN + self.height(det))
             self.floor_depth = float(np.median(self.floors))  # robust to a frame where the target hides the floor
             if not math.isfinite(self.h):
@@ -138,6 +153,10 @@ class Params:
     max_search: float = 3.0       # [m] dead-reckoned travel without a detection -> abort
     control_rate: float = 10.0    # [Hz] of simulation time
     timeout: float = 240.0        # [s] of simulation time for the whole mission
+    surface: bool = False         # end with a surfacing phase that waits for GNSS fixes (needs a GNSS)
+    surface_depth: float = 0.2    # [m] body depth at the surface: the GNSS mast 0.4 m out of the water
+    gnss_fixes: int = 3           # fixes to log at the surface before the mission completes
+    surface_timeout: float = 60.0  # [s] in the surfacing phase without those fixes -> fail
     depth_tol: float = 0.05       # [m] settled: |error| below this ...
     heading_tol: float = 2.0      # [deg]
     range_tol: float = 0.03       # [m]
@@ -159,8 +178,12 @@ class Mission:
     = model drag at the reference rate + mass x gain x rate error (+ a slow
     integral on depth). Depth: Keller depth through a model-driven observer.
     Heading: WitMotion heading and gyro rate. Surge (approach and hold): the
-    target track's distance, the model's surge speed; nothing else drives
-    surge. Sway is left alone (no sway sensor)."""
+    target track's distance and the surge speed, the model's corrected by the
+    DVL's measured velocity (:meth:`dvl`), whose altitude also gives the floor's
+    depth (the track's sonar height); without a DVL, the model alone and the
+    sonar's floor band. Sway is left alone. At the end (``surface``) it rises to
+    ``surface_depth``, holds position on the DVL, and completes once the GNSS
+    has given ``gnss_fixes`` fixes (:meth:`gnss`)."""
 
     def __init__(self, p: Params, esc: str = "duty") -> None:
         self.p = p
@@ -172,7 +195,12 @@ class Mission:
         self.surge_obs = AxisObserver(SURGE, alpha=0.0, beta=0.0)     # no speed sensor: the model only
         self.track = TargetTrack()
         self.depth_history: deque[tuple[float, float]] = deque(maxlen=100)
-        self.plan = ["dive"] + [f"turn_{h:g}" for h in p.headings] + ["approach", "hold"]
+        self.plan = ["dive"] + [f"turn_{h:g}" for h in p.headings] + ["approach", "hold"] \
+            + (["surface"] if p.surface else [])
+        self.depth_ref = p.depth
+        self.dvl_u = math.nan          # [m/s] the DVL's last valid surge velocity
+        self.dvl_altitude = math.nan   # [m] and altitude
+        self.gnss_fixes: list[dict[str, float]] = []   # fixes logged in the surfacing phase
         self.phases: list[Phase] = []
         self.settled_since: float | None = None
         self.heading_ref = math.nan
@@ -187,6 +215,22 @@ class Mission:
     def phase(self) -> str:
         return self.phases[-1].name if self.phases else "wait"
 
+    def dvl(self, report: dict | None, depth: float) -> None:
+        """The DVL's latest velocity report (None: none fresh) at vehicle ``depth`` [m]: its vx (the DVL
+        is mounted straight, so vx is surge) corrects the surge speed; its altitude, the floor's depth."""
+        if report is None or not report.get("velocity_valid"):
+            self.dvl_u = self.dvl_altitude = math.nan
+            return
+        self.dvl_u, self.dvl_altitude = float(report["vx"]), float(report["altitude"])
+        self.surge_obs.correct_rate(self.dvl_u, 0.5)
+        if self.phase not in ("surface",) and math.isfinite(depth):
+            self.track.dvl_floor(depth + DVL_DOWN + self.dvl_altitude)
+
+    def gnss(self, t: float, fix: dict[str, float]) -> None:
+        """A GGA epoch; fixes (quality > 0) count in the surfacing phase."""
+        if self.phase == "surface" and fix.get("quality", 0) > 0 and math.isfinite(fix.get("lat_deg", math.nan)):
+            self.gnss_fixes.append({**fix, "t": t})
+
     def start(self, t: float, heading: float) -> None:
         self.heading_ref = heading
         self._enter(self.plan[0], t)
@@ -196,6 +240,9 @@ class Mission:
         self.settled_since = None
         if name.startswith("turn_"):
             self.heading_ref = float(name[5:]) % 360.0
+        if name == "surface":
+            self.depth_ref = self.p.surface_depth
+            self.depth_int = 0.0
 
     def _next(self, t: float, outcome: str) -> None:
         cur = self.phases[-1]
@@ -245,7 +292,7 @@ class Mission:
         phase = self.phase
 
         # heave: depth -> heave rate reference -> force (model feed-forward + integral)
-        ez = p.depth - z
+        ez = self.depth_ref - z
         w_ref = clamp(0.5 * ez, -0.2, 0.2)
         if abs(ez) < 0.3:
             self.depth_int = clamp(self.depth_int + ez * dt, -20.0, 20.0)
@@ -259,6 +306,8 @@ class Mission:
         # surge, in the approach and the hold: the target's distance -> surge speed reference -> force
         fx = 0.0
         tracked = self.track.valid(t)
+        if phase == "surface":      # hold position over ground on the DVL while rising
+            fx = SURGE.drag(0.0) + SURGE.mass * 1.0 * (0.0 - u)
         if phase in ("approach", "hold"):
             self.travel += u * dt
             if tracked:
@@ -289,6 +338,11 @@ class Mission:
         elif phase == "hold":
             if t - self.phases[-1].start >= p.hold_time:
                 self._next(t, "completed")
+        elif phase == "surface":
+            if len(self.gnss_fixes) >= p.gnss_fixes:
+                self._next(t, "gnss fix")
+            elif t - self.phases[-1].start > p.surface_timeout:
+                self.fail(t, f"no GNSS fix within {p.surface_timeout:g} s of surfacing")
 
         thrusts = self.dither(allocate(self.alloc, fx, 0.0, fz, mz, self.thr.limit))
         w = self.layout @ thrusts     # what the thrusters give (limits, dead band): the observers' input

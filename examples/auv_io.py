@@ -1,12 +1,19 @@
-"""Navigation sensors on Modbus TCP (pymodbus) and thrusters on VESC CAN through socketcand
-(python-can, cantools), and the bridge's endpoints file.
+"""Navigation sensors on Modbus TCP (pymodbus), the Water Linked DVL's TCP JSON API, an NMEA 0183 GNSS
+on a serial port (pyserial), thrusters on VESC CAN through socketcand (python-can, cantools), and the
+bridge's endpoints file.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+import operator
+import socket
 import struct
+import threading
+import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +67,139 @@ class ModbusSensors:
     def close(self) -> None:
         self.keller.close()
         self.imu.close()
+
+
+class DvlClient:
+    """Water Linked DVL A50 over its TCP JSON API (Water Linked's "DVL A50/A125 TCP JSON API": one JSON
+    object per line; ``"type": "velocity"`` reports carry vx, vy, vz [m/s] in the DVL's frame, altitude
+    [m] and velocity_valid; time_of_validity is the ping's Unix time [us]). A reader thread keeps the
+    latest velocity report; :meth:`latest` gives it while it is fresh."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.sock = socket.create_connection((host, port), timeout=5.0)
+        self.sock.settimeout(0.5)
+        self.reports = 0
+        self.valid = 0
+        self.errors = 0
+        self._last: tuple[float, dict[str, Any]] | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                chunk = self.sock.recv(65536)
+            except socket.timeout:
+                continue
+            except OSError:
+                break
+            if not chunk:
+                break
+            buf += chunk
+            *lines, buf = buf.split(b"\n")
+            for line in lines:
+                try:
+                    msg = json.loads(line)
+                except ValueError:
+                    self.errors += 1
+                    continue
+                if isinstance(msg, dict) and msg.get("type") == "velocity":
+                    self.reports += 1
+                    self.valid += bool(msg.get("velocity_valid"))
+                    self._last = (time.monotonic(), msg)
+
+    def latest(self, max_age: float = 0.5) -> dict[str, Any] | None:
+        """The last velocity report if it arrived less than ``max_age`` [s of wall time] ago."""
+        last = self._last
+        if last is None or time.monotonic() - last[0] > max_age:
+            return None
+        return last[1]
+
+    def close(self) -> None:
+        self._stop.set()
+        try:
+            self.sock.close()
+        finally:
+            self._thread.join(timeout=2.0)
+
+
+def nmea_fields(line: bytes) -> list[str] | None:
+    """The fields of one NMEA 0183 sentence (``$..*HH``) if its checksum (XOR of the bytes between
+    ``$`` and ``*``) is right, else None."""
+    line = line.strip()
+    if not line.startswith(b"$") or len(line) < 4 or line[-3:-2] != b"*":
+        return None
+    body = line[1:-3]
+    try:
+        if functools.reduce(operator.xor, body, 0) != int(line[-2:], 16):
+            return None
+        return body.decode("ascii").split(",")
+    except (ValueError, UnicodeDecodeError):
+        return None
+
+
+def parse_gga(fields: list[str]) -> dict[str, float] | None:
+    """GGA fields -> {quality, lat_deg, lon_deg, alt_m, satellites, hdop, utc_s}; None if not a GGA."""
+    if len(fields) < 10 or not fields[0].endswith("GGA"):
+        return None
+    out = {"quality": float(fields[6] or 0), "satellites": float(fields[7] or 0),
+           "hdop": float(fields[8]) if fields[8] else math.nan, "lat_deg": math.nan, "lon_deg": math.nan,
+           "alt_m": float(fields[9]) if fields[9] else math.nan, "utc_s": math.nan}
+    if fields[1]:
+        out["utc_s"] = int(fields[1][:2]) * 3600 + int(fields[1][2:4]) * 60 + float(fields[1][4:])
+    if fields[2] and fields[4]:
+        lat = int(fields[2][:2]) + float(fields[2][2:]) / 60.0
+        lon = int(fields[4][:3]) + float(fields[4][3:]) / 60.0
+        out["lat_deg"] = -lat if fields[3] == "S" else lat
+        out["lon_deg"] = -lon if fields[5] == "W" else lon
+    return out
+
+
+class GnssReader:
+    """An NMEA 0183 GNSS receiver on a serial port (pyserial): a reader thread parses the GGA
+    sentences (checksum checked); :meth:`take` hands over those received since the last call."""
+
+    def __init__(self, path: str, baudrate: int) -> None:
+        import serial
+
+        self.port = serial.Serial(path, baudrate, timeout=0.2)
+        self.sentences = 0
+        self.bad = 0
+        self._fixes: deque[dict[str, float]] = deque(maxlen=100)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                buf += self.port.read(self.port.in_waiting or 1)
+            except Exception:  # noqa: BLE001 - the port went away (the bridge stopped)
+                break
+            *lines, buf = buf.split(b"\n")
+            for line in lines:
+                fields = nmea_fields(line)
+                if fields is None:
+                    self.bad += bool(line.strip())
+                    continue
+                self.sentences += 1
+                gga = parse_gga(fields)
+                if gga is not None:
+                    self._fixes.append(gga)
+
+    def take(self) -> list[dict[str, float]]:
+        out = []
+        while self._fixes:
+            out.append(self._fixes.popleft())
+        return out
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.port.close()
 
 
 VESC_COMMANDS = {"duty": (0, "SET_DUTY", "duty", 1e-5), "current": (1, "SET_CURRENT", "current", 1e-3),
@@ -154,11 +294,11 @@ class EscHealth:
 
 
 def load_endpoints(path: Path) -> dict[str, dict[str, Any]]:
-    """The bridge's endpoints JSON (a list of {device, protocol, transport, address, ...}) by protocol,
-    TCP / socketcand entries only."""
+    """The bridge's endpoints JSON (a list of {device, protocol, transport, address, ...}) by protocol:
+    TCP / socketcand entries, and the NMEA GNSS on its serial port (pty)."""
     out: dict[str, dict[str, Any]] = {}
     for e in json.loads(path.read_text()):
-        if e.get("transport") in ("tcp", "socketcand"):
+        if e.get("transport") in ("tcp", "socketcand") or e.get("protocol") == "nmea-gnss":
             out.setdefault(e["protocol"], e)
     need = ["ddf-stream", "modbus-keller", "modbus-witmotion", "vesc-can"]
     missing = [n for n in need if n not in out]

@@ -115,6 +115,10 @@ YAW = Axis(45.0, 20.0, 60.0)
 SONAR_DOWN = 0.3           # [m] below the body origin
 SONAR_TILT_DEG = 45.0
 SONAR_HALF_ELEVATION_DEG = 7.0
+# The DVL (Water Linked A50) 0.35 m below the body origin, looking down, its x forward; the GNSS antenna on
+# a 0.6 m mast: out of the water once the body origin is less than 0.6 m deep.
+DVL_DOWN = 0.35            # [m] below the body origin
+GNSS_MAST = 0.6            # [m] above the body origin
 
 
 def layout_matrix() -> np.ndarray:

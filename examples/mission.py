@@ -11,7 +11,10 @@ real vehicle exposing the same devices (see ``examples/README.md``):
 - thrusters: 8 VESCs on CAN through socketcand (python-can), SET_DUTY / SET_RPM /
   SET_CURRENT encoded with cantools from ``protocols/vesc_can.dbc`` (or packed by
   hand per the DBC when the file is absent); STATUS_1 read back (ERPM);
-- sonar: the DIDSON-like DDF stream over a plain TCP socket.
+- sonar: the DIDSON-like DDF stream over a plain TCP socket;
+- DVL: Water Linked DVL A50 over its TCP JSON API (velocity reports: surge speed for the approach and
+  the hold, altitude for the floor's depth);
+- GNSS: NMEA 0183 on a serial port (pyserial), GGA fixes logged in a surfacing phase at the end.
 
 Timing: the stack runs on the simulation's clock, read from the sonar frame
 headers (frame time, microseconds since the epoch, offset 4). It estimates
@@ -45,7 +48,8 @@ if str(HERE) not in sys.path:  # the stack's modules live next to this file
     sys.path.insert(0, str(HERE))
 
 from auv_control import Mission, Params, wrap180  # noqa: E402
-from auv_io import VESC_COMMANDS, EscHealth, ModbusSensors, VescCan, host_port, load_endpoints  # noqa: E402
+from auv_io import (VESC_COMMANDS, DvlClient, EscHealth, GnssReader, ModbusSensors, VescCan, host_port,  # noqa: E402
+                    load_endpoints)
 from auv_sonar import DdfSonar, Detection, SimClock, TargetDetector  # noqa: E402
 from auv_vehicle import THRUSTERS  # noqa: E402
 from mission_report import write_outputs  # noqa: E402
@@ -86,6 +90,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--dbc", type=Path, default=DEFAULT_DBC,
                     help="VESC DBC for cantools (default protocols/vesc_can.dbc; missing: packed by hand)")
     ap.add_argument("--timeout", type=float, default=Params.timeout, help="mission limit [s of sim time] (240)")
+    ap.add_argument("--surface", action="store_true",
+                    help="after the hold, surface and wait for GNSS fixes (needs the bridge's nmea-gnss endpoint)")
+    ap.add_argument("--surface-depth", type=float, default=Params.surface_depth,
+                    help="[m] body depth of the surfacing phase (0.2: the GNSS mast out of the water)")
+    ap.add_argument("--gnss-fixes", type=int, default=Params.gnss_fixes,
+                    help="GNSS fixes to log at the surface before the mission completes (3)")
     ap.add_argument("--status-every", type=float, default=1.0, help="status line period [s of sim time] (1)")
     ap.add_argument("--no-plots", action="store_true", help="summary JSON and CSV only")
     ap.add_argument("--quiet", action="store_true", help="no live status lines")
@@ -103,18 +113,23 @@ def status_line(t: float, m: Mission, depth: float, heading: float, det: Detecti
                 thrusts: np.ndarray, cmds: list[float], kind: str, stale: str) -> str:
     fx, _, fz, mz = m.force
     rng = f"{det.shadow_edge:4.2f} m" if det is not None and det.found else " -- m "
+    alt = f"  alt {m.dvl_altitude:4.2f} m" if math.isfinite(m.dvl_altitude) else ""
+    gnss = f"  gnss fixes {len(m.gnss_fixes)}" if m.phase == "surface" else ""
     unit = {"duty": "", "rpm": " [erpm]", "current": " [A]"}[kind]
     fmt = (lambda v: f"{v:+.0f}") if kind == "rpm" else (lambda v: f"{v:+.2f}")
     h = " ".join(fmt(c) for c in cmds[:4])
     v = " ".join(fmt(c) for c in cmds[4:])
     return (f"t={t:6.1f}s {m.phase:<9} depth {depth:4.2f} m  hdg {wrap180(heading):+6.1f} deg  "
-            f"target {rng}  F x{fx:+5.1f} z{fz:+5.1f} N  Mz{mz:+5.1f} Nm  {kind}{unit} h[{h}] v[{v}]{stale}")
+            f"target {rng}{alt}{gnss}  F x{fx:+5.1f} z{fz:+5.1f} N  Mz{mz:+5.1f} Nm  {kind}{unit} h[{h}] v[{v}]{stale}")
 
 
 def run(a: argparse.Namespace) -> int:
-    p = Params(depth=a.depth, headings=a.headings, hold_range=a.hold_range, hold_time=a.hold_time,
-               approach_speed=a.approach_speed, control_rate=a.control_rate, timeout=a.timeout)
     ep = load_endpoints(a.endpoints)
+    if a.surface and "nmea-gnss" not in ep:
+        raise ValueError(f"{a.endpoints}: --surface needs a GNSS (no nmea-gnss endpoint)")
+    p = Params(depth=a.depth, headings=a.headings, hold_range=a.hold_range, hold_time=a.hold_time,
+               approach_speed=a.approach_speed, control_rate=a.control_rate, timeout=a.timeout,
+               surface=a.surface, surface_depth=a.surface_depth, gnss_fixes=a.gnss_fixes)
     clock = SimClock()
     wall_start = time.monotonic()
     sonar = DdfSonar(*host_port(ep["ddf-stream"]["address"]), a.sonar_rate or None, clock, TargetDetector)
@@ -124,11 +139,16 @@ def run(a: argparse.Namespace) -> int:
     vc = ep["vesc-can"]
     vesc = VescCan(vc.get("host") or host_port(vc["address"])[0], int(vc.get("port") or host_port(vc["address"])[1]),
                    vc.get("channel", "can0"), a.esc, a.dbc)
+    dvl = DvlClient(*host_port(ep["dvl-json"]["address"])) if "dvl-json" in ep else None
+    gnss = GnssReader(ep["nmea-gnss"]["address"], int(ep["nmea-gnss"].get("baudrate", 9600))) if p.surface else None
+    if dvl is None:
+        print("mission: no DVL endpoint; surge speed from the model, floor from the sonar", flush=True)
     mission = Mission(p, esc=a.esc)
     thr = mission.thr
     health = EscHealth([n for n, _, _, _ in THRUSTERS])
     log = Log()
     frames_log = Log()
+    gnss_log = Log()
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):   # stop cleanly: thrusters to zero, summary written
         signal.signal(sig, lambda *_: stop.set())
@@ -188,6 +208,13 @@ def run(a: argparse.Namespace) -> int:
                 frames_log.add(t=tf, number=f.number, found=float(d.found), shadow_edge=d.shadow_edge,
                                near_edge=d.near_edge, floor_far=d.floor_far, floor_near=d.floor_near,
                                hdr_depth=f.depth, hdr_heading=f.heading)
+            report = dvl.latest() if dvl is not None else None
+            mission.dvl(report, last_depth)
+            for fix in (gnss.take() if gnss is not None else []):
+                mission.gnss(t, fix)
+                if fix["quality"] > 0:
+                    gnss_log.add(t=t, quality=fix["quality"], lat_deg=fix["lat_deg"], lon_deg=fix["lon_deg"],
+                                 alt_m=fix["alt_m"], satellites=fix["satellites"], hdop=fix["hdop"])
             stale_age = clock.last_frame_age()
             # -- act -----------------------------------------------------------------------------
             step_dt = dt if last_step is None else min(max(t - last_step, 1e-3), 1.0)  # the real interval
@@ -204,10 +231,12 @@ def run(a: argparse.Namespace) -> int:
             fx, fy, fz, mz = mission.force
             rng = mission.target_range(t)
             log.add(t=t, depth=last_depth, depth_est=mission.depth_obs.x, heave_rate=mission.depth_obs.v,
-                    heading=heading, yaw_rate=yaw_rate, heading_ref=mission.heading_ref, depth_ref=p.depth,
+                    heading=heading, yaw_rate=yaw_rate, heading_ref=mission.heading_ref, depth_ref=mission.depth_ref,
                     range=rng, distance=mission.track.d if mission.track.valid(t) else math.nan,
                     sonar_height=mission.track.h, speed_bias=mission.track.speed_bias,
                     surge_speed=mission.surge_obs.v, fx=fx, fz=fz, mz=mz,
+                    dvl_vx=mission.dvl_u, dvl_altitude=mission.dvl_altitude,
+                    floor_depth=mission.track.floor_depth,
                     phase=float(mission.plan.index(mission.phase)) if mission.phases else -1.0,
                     **{f"cmd{i}": c for i, c in enumerate(cmds)},
                     depth_ok=float(depth_ok),
@@ -228,11 +257,17 @@ def run(a: argparse.Namespace) -> int:
         sonar.close()
         sensors.close()
         vesc.close()
+        if dvl is not None:
+            dvl.close()
+        if gnss is not None:
+            gnss.close()
     info = {"time_scale_estimate": clock.rate, "wall_s": wall, "t0_unix": t0, "late_ticks": late,
             "frames_received": sonar.received, "frames_lost": sonar.lost, "sonar_replies": sonar.replies,
             "modbus_errors": sensors.errors, "can_frames_sent": vesc.sent, "esc_status_frames": vesc.status_frames,
             "esc_erpm_last": {str(k): v for k, v in sorted(vesc.erpm.items())}, "esc_command": a.esc,
-            "dbc": str(a.dbc) if vesc.db is not None else None, "thruster_faults": health.faults}
+            "dbc": str(a.dbc) if vesc.db is not None else None, "thruster_faults": health.faults,
+            "dvl_reports": dvl.reports if dvl is not None else 0, "dvl_valid": dvl.valid if dvl is not None else 0,
+            "gnss_sentences": gnss.sentences if gnss is not None else 0, "gnss_log": gnss_log.columns}
     summary = write_outputs(a.out, p, mission, log.columns, frames_log.columns, info, plots=not a.no_plots,
                             thruster_names=[n for n, _, _, _ in THRUSTERS])
     print(summary["text"], flush=True)

@@ -51,12 +51,18 @@ def summarize(p: Any, mission: Any, cols: dict[str, list[float]], frames: dict[s
                                           "control_rate_hz": p.control_rate},
                            "phases": phases, "duration_s": _r(end_all, 2)}
 
-    # depth: from the end of the dive (settled) to the end of the mission
+    # depth: from the end of the dive (settled) to the surfacing (or the end of the mission)
     depth = np.asarray(cols.get("depth", []), float)
     dive = by_name.get("dive")
     d: dict[str, Any] = {"target_m": p.depth, "dive_time_s": _r(dive.end - dive.start, 2) if dive else None}
+    surface = by_name.get("surface")
+    end_depth = surface.start if surface is not None else end_all
     if dive is not None and math.isfinite(dive.end):
-        d["after_dive"] = _stats(depth[window(dive.end, end_all)] - p.depth)
+        d["after_dive"] = _stats(depth[window(dive.end, end_depth)] - p.depth)
+    if surface is not None:
+        sel = window(surface.start, surface.end if math.isfinite(surface.end) else end_all + 1.0)
+        d["surface"] = {"target_m": p.surface_depth,
+                        "final_m": _r(float(depth[sel][-1])) if sel.any() else None}
     if "hold" in by_name:
         h = by_name["hold"]
         d["hold"] = _stats(depth[window(h.start, h.end if math.isfinite(h.end) else end_all)] - p.depth)
@@ -116,8 +122,32 @@ def summarize(p: Any, mission: Any, cols: dict[str, list[float]], frames: dict[s
     out["thrusters"]["faults"] = info.get("thruster_faults", [])
     ok = np.asarray(cols.get("depth_ok", []), float)
     out["depth"]["invalid_readings"] = int(np.sum(ok < 0.5)) if ok.size else 0
+    # DVL: the reports the approach and the hold flew on; the altitude and surge velocity in the hold
+    dvl_alt = np.asarray(cols.get("dvl_altitude", []), float)
+    dvl_vx = np.asarray(cols.get("dvl_vx", []), float)
+    dv: dict[str, Any] = {"reports": info.get("dvl_reports", 0), "valid": info.get("dvl_valid", 0)}
+    if "hold" in by_name and dvl_alt.size:
+        h = by_name["hold"]
+        sel = window(h.start, h.end if math.isfinite(h.end) else end_all)
+        dv["hold_altitude_m"] = _stats(dvl_alt[sel])
+        dv["hold_vx_m_s"] = _stats(dvl_vx[sel])
+    out["dvl"] = dv
+
+    # GNSS: the fixes logged at the surface
+    g = info.get("gnss_log") or {}
+    gq = np.asarray(g.get("quality", []), float)
+    gs: dict[str, Any] = {"fixes": int(len(gq)), "sentences": info.get("gnss_sentences", 0)}
+    if len(gq):
+        gt = np.asarray(g["t"], float)
+        gs.update({"first_fix_s": _r(float(gt[0]), 2), "quality": int(gq[-1]),
+                   "lat_deg": _r(float(np.mean(g["lat_deg"])), 7), "lon_deg": _r(float(np.mean(g["lon_deg"])), 7),
+                   "alt_m": _r(float(np.mean(g["alt_m"])), 2), "satellites": int(g["satellites"][-1]),
+                   "hdop": _r(float(g["hdop"][-1]), 2)})
+        if surface is not None:
+            gs["after_surfacing_start_s"] = _r(float(gt[0]) - surface.start, 2)
+    out["gnss"] = gs
     out["timing"] = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in info.items()
-                     if k != "thruster_faults"}
+                     if k not in ("thruster_faults", "gnss_log")}
     out["control_ticks"] = int(len(t))
     return out
 
@@ -151,6 +181,16 @@ def text(summary: dict[str, Any]) -> str:
     for f in s["thrusters"].get("faults", []):
         lines.append(f"thruster {f['thruster']} (VESC {f['controller']}) reported stopped while commanded "
                      f"from t = {f['t_s']} s")
+    dv = s.get("dvl", {})
+    if dv.get("reports"):
+        alt = dv.get("hold_altitude_m", {})
+        lines.append(f"DVL: {dv['valid']}/{dv['reports']} reports with bottom lock; altitude in the hold "
+                     f"{alt.get('mean')} m")
+    g = s.get("gnss", {})
+    if g.get("fixes"):
+        lines.append(f"GNSS at the surface: {g['fixes']} fixes from {g.get('after_surfacing_start_s')} s after the "
+                     f"surfacing began: {g['lat_deg']}, {g['lon_deg']} (quality {g['quality']}, "
+                     f"{g['satellites']} satellites)")
     if s["depth"].get("invalid_readings"):
         lines.append(f"depth sensor: {s['depth']['invalid_readings']} control ticks without a valid reading "
                      "(flown on the last good one)")

@@ -15,6 +15,7 @@ the bridge only through its wire protocols.
 
 from __future__ import annotations
 
+import csv
 import importlib
 import json
 import math
@@ -35,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 SCENARIO = ROOT / "scenarios" / "water_tank" / "scenario.toml"
 SONAR_PROFILE = ROOT / "devices" / "sonars" / "didson_hf.toml"
+GNSS_PROFILE = ROOT / "devices" / "sensors" / "gnss_single.toml"
 
 TIME_SCALE = 4
 DEPTH = 1.8          # [m] the mission's defaults, passed explicitly
@@ -48,7 +50,11 @@ def _geometry() -> dict[str, float]:
     objects = {o["name"]: o for o in sc["objects"]}
     floor, cuboid = objects["floor"], objects["cuboid"]
     sonar = next(s for s in sc["sensors"] if s["kind"] == "sonar")
+    dvl = next(s for s in sc["sensors"] if s["kind"] == "dvl")
+    gnss = next(s for s in sc["sensors"] if s["kind"] == "gnss")
     prof = tomllib.loads(SONAR_PROFILE.read_text())
+    gnss_prof = tomllib.loads(GNSS_PROFILE.read_text())["sensor"]
+    assert gnss["profile"] == "gnss_single"
     return {
         "floor_top": floor["position_m"][2] - floor["size_m"][2] / 2,          # 3.0
         "front_face_x": cuboid["position_m"][0] - cuboid["size_m"][0] / 2,     # 0.0
@@ -58,6 +64,10 @@ def _geometry() -> dict[str, float]:
         "half_elevation": prof["beams"]["elevation_limits"]["value"][1],       # 7
         "half_azimuth": prof["beams"]["azimuth_limits"]["value"][1],           # 14.5
         "x_A": sc["positions"]["A"]["position_m"][0], "x_C": sc["positions"]["C"]["position_m"][0],
+        "dvl_z": dvl["position_m"][2],                                          # 0.35 below the body origin
+        "gnss_x": gnss["position_m"][0], "mast": -gnss["position_m"][2],        # -0.3, 0.6
+        "origin_lat": sc["world"]["origin"]["lat_deg"], "origin_lon": sc["world"]["origin"]["lon_deg"],
+        "time_to_fix": gnss_prof["time_to_fix"]["value"], "gnss_noise": gnss_prof["horizontal_noise"]["value"],
     }
 
 
@@ -171,7 +181,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict:
         proc = subprocess.Popen(
             [sys.executable, str(EXAMPLES / "demo.py"), "--time-scale", str(TIME_SCALE), "--out", str(out),
              "--run-dir", str(run_dir), "--", "--depth", str(DEPTH), "--hold-range", str(HOLD_RANGE),
-             "--hold-time", str(HOLD_TIME), "--rho", str(RHO)],
+             "--hold-time", str(HOLD_TIME), "--rho", str(RHO), "--surface"],
             stdout=log, stderr=subprocess.STDOUT, cwd=tmp)
         try:
             proc.wait(timeout=180)
@@ -224,8 +234,8 @@ def test_the_demo_completes_the_mission_and_stops_the_bridge_cleanly(run):
     assert "Traceback" not in run["log"] + run["bridge_log"]
     s = run["summary"]
     assert s["success"] and s["failure"] is None
-    assert [p["name"] for p in s["phases"]] == ["dive", "turn_20", "turn_0", "approach", "hold"]
-    assert [p["outcome"] for p in s["phases"]] == ["settled"] * 4 + ["completed"]
+    assert [p["name"] for p in s["phases"]] == ["dive", "turn_20", "turn_0", "approach", "hold", "surface"]
+    assert [p["outcome"] for p in s["phases"]] == ["settled"] * 4 + ["completed", "gnss fix"]
     assert s["timing"]["time_scale_estimate"] == pytest.approx(TIME_SCALE, rel=0.1)
     for name in ("summary.json", "mission_log.csv", "sonar_log.csv", "depth.png", "heading.png", "range.png",
                  "thrusters.png", "overview.png"):
@@ -250,7 +260,7 @@ def test_the_vehicle_reaches_and_holds_the_commanded_depth(run):
     assert s["depth"]["dive_time_s"] < 40
     # independently: the Keller over Modbus and the simulator's own depth in the frame headers
     t0 = s["timing"]["t0_unix"]
-    rows = [r for r in run["obs"].rows if t0 + _phase(s, "dive")["end_s"] + 1.0 <= r["t"] <= t0 + s["duration_s"]]
+    rows = [r for r in run["obs"].rows if t0 + _phase(s, "dive")["end_s"] + 1.0 <= r["t"] <= t0 + _phase(s, "hold")["end_s"]]
     assert len(rows) > 10
     for key in ("modbus_depth", "hdr_depth"):
         d = np.array([r[key] for r in rows])
@@ -307,6 +317,59 @@ def test_the_hold_echo_is_the_cuboids_front_face_where_the_geometry_puts_it(run)
         # the vehicle's position this implies lies between positions A and C of the scenario
         x = g["front_face_x"] - (g["mount_x"] + d_foot)
         assert g["x_A"] < x < g["x_C"], x
+
+
+def _mission_log(run: dict) -> dict[str, np.ndarray]:
+    with open(run["out"] / "mission_log.csv") as f:
+        rows = list(csv.DictReader(f))
+    return {k: np.array([float(r[k]) if r[k] not in ("", "nan") else math.nan for r in rows]) for k in rows[0]}
+
+
+def test_the_dvl_flies_the_approach_and_the_hold(run):
+    """The stack's surge speed and floor come from the DVL (Water Linked JSON API): its reports have bottom
+    lock, its altitude in the hold is the floor's height below the DVL (floor - depth - 0.35 m, from the
+    scenario), and its surge velocity there is zero."""
+    s = run["summary"]
+    dvl = s["dvl"]
+    assert dvl["reports"] > 200 and dvl["valid"] >= 0.95 * dvl["reports"], dvl
+    expect = GEO["floor_top"] - (DEPTH + GEO["dvl_z"])                      # 0.85 m
+    assert dvl["hold_altitude_m"]["mean"] == pytest.approx(expect, abs=0.02), str(dvl) + _diag(run)
+    assert abs(dvl["hold_vx_m_s"]["mean"]) < 0.01 and dvl["hold_vx_m_s"]["max_abs"] < 0.05, dvl
+    c = _mission_log(run)
+    ap = _phase(s, "approach")
+    sel = (c["t"] >= ap["start_s"]) & (c["t"] < ap["end_s"]) & np.isfinite(c["dvl_vx"])
+    assert sel.sum() > 20
+    # the approach creeps forward at most at its speed limit, as the DVL measures it
+    assert 0.0 < np.median(c["dvl_vx"][sel]) <= 0.05 + 0.01
+    # the floor the stack tracks is the DVL's: depth + 0.35 + altitude
+    assert np.nanmedian(c["floor_depth"][sel]) == pytest.approx(GEO["floor_top"], abs=0.02)
+
+
+def test_the_mission_surfaces_and_logs_gnss_fixes_where_the_vehicle_is(run):
+    """The surfacing phase: the stack rises until the mast is out of the water and completes on its third
+    GNSS fix, which comes no sooner than the receiver's time to fix; the fixes' mean position is the
+    antenna's, converted from the scenario's [world] origin with the standard degree lengths, within the
+    profile's noise."""
+    s = run["summary"]
+    surf = _phase(s, "surface")
+    assert surf["outcome"] == "gnss fix"
+    g = s["gnss"]
+    assert g["fixes"] >= 3 and g["quality"] == 1 and g["satellites"] >= 4
+    assert g["after_surfacing_start_s"] >= GEO["time_to_fix"]
+    assert s["depth"]["surface"]["final_m"] < GEO["mast"]                   # the antenna out of the water
+    # where the vehicle held: from the observer's own sonar measurement in the hold
+    lo = math.radians(GEO["tilt"] - GEO["half_elevation"])
+    xs = []
+    for r in _hold_rows(run):
+        h = GEO["floor_top"] - (r["hdr_depth"] + GEO["mount_z"])
+        xs.append(GEO["front_face_x"] - (GEO["mount_x"] + math.sqrt(r["far"] ** 2 - h ** 2)))
+    north = float(np.median(xs)) + GEO["gnss_x"]
+    phi = math.radians(GEO["origin_lat"])
+    m_lat = 111132.954 - 559.822 * math.cos(2 * phi) + 1.175 * math.cos(4 * phi)       # [m / deg]
+    m_lon = 111412.84 * math.cos(phi) - 93.5 * math.cos(3 * phi) + 0.118 * math.cos(5 * phi)
+    tol = 4 * GEO["gnss_noise"] / math.sqrt(g["fixes"]) + 0.5                          # noise + drift at the surface
+    assert (g["lat_deg"] - GEO["origin_lat"]) * m_lat == pytest.approx(north, abs=tol)
+    assert (g["lon_deg"] - GEO["origin_lon"]) * m_lon == pytest.approx(0.0, abs=tol)
 
 
 def _example(name: str):
