@@ -1,8 +1,8 @@
 """The console's data side: what the devices publish, kept as the latest value, sent to pages.
 
-The hub listens on the bridge's observers: commands, readings, faults and contacts
-always (small, kept bounded), sonar frames and camera pictures only while a page is
-open. A listener only stores a reference to the latest message (the device's call
+The hub listens on the bridge's observers: thruster commands (who commanded each last),
+faults and contacts always (small, kept bounded); readings, sonar frames and camera
+pictures only while a page is open. A listener only stores a reference to the latest message (the device's call
 returns at once); the hub's own tick, 10 times a second of wall time and only while
 a page is open, builds one state message and encodes each sonar head's newest frame
 once, and offers them to every page. A page keeps one slot per kind: a newer item
@@ -118,8 +118,8 @@ class Hub:
     # -- subscriptions ----------------------------------------------------------
     def start(self) -> None:
         obs = self.bridge.observers
-        self._unsub = [obs.subscribe("command/*", self._on_command), obs.subscribe("reading/*", self._on_reading),
-                       obs.subscribe("fault", self._on_event), obs.subscribe("contact", self._on_event)]
+        self._unsub = [obs.subscribe("command/*", self._on_command), obs.subscribe("fault", self._on_event),
+                       obs.subscribe("contact", self._on_event)]
         self._track_handle = self.bridge.every("console-track", 0.5, self._on_track, priority=90, tolerance=0.5)
 
     def _on_command(self, topic: str, msg: Mapping[str, Any]) -> None:
@@ -157,7 +157,8 @@ class Hub:
         self.pages.add(page)
         if len(self.pages) == 1:
             obs = self.bridge.observers
-            self._page_unsub = [obs.subscribe("sonar/*", self._on_sonar), obs.subscribe("camera/*", self._on_camera)]
+            self._page_unsub = [obs.subscribe("sonar/*", self._on_sonar), obs.subscribe("camera/*", self._on_camera),
+                                obs.subscribe("reading/*", self._on_reading)]
             self._tick_task = asyncio.ensure_future(self._tick_loop())
 
     def remove_page(self, page: Any) -> None:
@@ -169,6 +170,7 @@ class Hub:
                 u()
             self._page_unsub = []
             self.sonar.clear()
+            self.readings.clear()
             if self._tick_task is not None:
                 self._tick_task.cancel()
                 self._tick_task = None
