@@ -136,6 +136,9 @@ class ArdupilotJsonDevice(Device):
         self.own(transport)
         self._wake = asyncio.Event()
         self._task = asyncio.ensure_future(self._serve())
+        log.info("%s: the simulation waits for ArduPilot's servo packets on udp %s:%d (ArduSub SITL: "
+                 "--model JSON:%s%s, FRAME_CONFIG %d)", self.name, self.host, self.port, self.host,
+                 "" if self.port == ARDUPILOT_PORT else f" --sim-port-out {self.port}", self.table.frame_config)
         extra = {"frame": self.table.frame, "FRAME_CONFIG": self.table.frame_config,
                  "servos": len(self.table.motors), "rangefinder": "rng_1" if self._rng_mount is not None else "none",
                  "lockstep": True}
