@@ -94,7 +94,7 @@ class Console:
     def __init__(self, bridge: Any, *, port: int = 0, host: str | None = None, max_pages: int = 8,
                  max_connections: int = 32, camera: Any | None = None) -> None:
         self.bridge = bridge
-        self.host = host or getattr(bridge, "bind", "127.0.0.1")
+        self.host: str = str(host or getattr(bridge, "bind", "127.0.0.1"))
         self.port = int(port)
         self.max_pages = int(max_pages)
         self.max_connections = max(int(max_connections), self.max_pages + 1)
@@ -109,7 +109,6 @@ class Console:
         self._runner: web.AppRunner | None = None
         self._menu: list[dict[str, Any]] | None = None
         self._scene: dict[str, Any] | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
 
     @property
     def url(self) -> str:
@@ -141,7 +140,7 @@ class Console:
         def factory() -> asyncio.BaseProtocol:
             if len(server.connections) >= self.max_connections:
                 return _Refuse(self)
-            return server()  # type: ignore[no-any-return]
+            return server()
         return factory
 
     def status(self) -> dict[str, Any]:
