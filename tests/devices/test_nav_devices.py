@@ -50,6 +50,20 @@ rate = 5
 [[devices]]
 name = "altimeter"
 protocol = "ping1d"
+
+[[devices]]
+name = "gnss_dual"
+protocol = "nmea-gnss"
+sensor = "gnss2"
+baudrate = 115200
+rate = 5
+"""
+DUAL_MOUNT = """
+[[sensors]]
+name = "gnss2"
+kind = "gnss"
+profile = "gnss_dual_fast"
+position_m = [0.3, 0.0, -0.6]
 """
 
 
@@ -61,6 +75,11 @@ def nav_scenario(tmp: Path) -> Path:
     prof = prof.replace('time_to_fix = { value = 5.0,', 'time_to_fix = { value = 1.0,')
     assert "value = 1.0," in prof
     (tmp / "gnss_fast.toml").write_text(prof)
+    dual = (ROOT / "devices" / "sensors" / "gnss_dual.toml").read_text()
+    dual = dual.replace('time_to_fix = { value = 10.0,', 'time_to_fix = { value = 1.0,')
+    assert "value = 1.0," in dual
+    (tmp / "gnss_dual_fast.toml").write_text(dual)
+    text = text.replace("[positions.A]", DUAL_MOUNT + "\n[positions.A]", 1)
     path = tmp / "scenario.toml"
     path.write_text(text + NAV_DEVICES)
     return path
@@ -507,3 +526,20 @@ def test_faults_show_on_the_wire(rb: RunningBridge) -> None:
         assert p.get_distance() is not None
     finally:
         p.iodev.close()
+
+
+def test_dual_antenna_gnss_gives_true_heading_at_the_surface(rb: RunningBridge) -> None:
+    path = rb.endpoints[("gnss_dual", "nmea-gnss")].address
+    under = [m for m in _read_sentences(path, 0.6) if m.sentence_type == "HDT"]
+    assert under and all(m.heading in ("", None) for m in under)          # no heading without a fix
+    rb.put(0.0)
+    try:
+        time.sleep(1.3)
+        msgs = _read_sentences(path, 0.8)
+        hdt = [m for m in msgs if m.sentence_type == "HDT"]
+        gga = [m for m in msgs if m.sentence_type == "GGA"]
+        assert hdt and gga and all(m.gps_qual == 4 for m in gga)          # the profile's RTK fixed
+        headings = [(float(m.heading) + 180.0) % 360.0 - 180.0 for m in hdt]
+        assert np.mean(headings) == pytest.approx(0.0, abs=1.5)            # heading north, 0.3 deg noise
+    finally:
+        rb.put(START[2])
