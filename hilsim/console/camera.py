@@ -39,6 +39,9 @@ class CameraFeed:
     64 k rays Embree goes multi-threaded and, on a busy 2-core machine, takes 8 times as long,
     which the sonar frames queued behind it in the render worker would pay."""
 
+    #: the most of the render worker's time camera pictures may take (the sonars come first)
+    SHARE = 0.1
+
     def __init__(self, bridge: Any, *, max_width: int = 240) -> None:
         self.bridge = bridge
         self.max_width = int(max_width)
@@ -70,9 +73,11 @@ class CameraFeed:
                 await self._one(mount)
             if not self._wants:
                 break
-            period = 1.0 / max(self._wants.values())
+            used = time.monotonic() - t0
+            # at the highest rate asked, but at most SHARE of the render worker's time
+            period = max(1.0 / max(self._wants.values()), used / self.SHARE)
             self._wake.clear()
-            delay = period - (time.monotonic() - t0)
+            delay = period - used
             if delay > 0:
                 try:  # a new, faster consumer wakes the loop early
                     await asyncio.wait_for(self._wake.wait(), delay)
