@@ -543,3 +543,28 @@ def test_dual_antenna_gnss_gives_true_heading_at_the_surface(rb: RunningBridge) 
         assert np.mean(headings) == pytest.approx(0.0, abs=1.5)            # heading north, 0.3 deg noise
     finally:
         rb.put(START[2])
+
+
+def test_a_moved_object_under_the_dvl_is_what_it_sees(rb: RunningBridge) -> None:
+    """The timeline's ``move`` puts the cuboid (0.30 m tall, top at 2.70 m) under the DVL, 0.5 m below it:
+    the altitude drops from 0.8 m (the floor) to 0.5 m (its top); moved back, 0.8 m again."""
+    z = 2.70 - 0.5 - DVL_Z                                  # DVL 0.5 m above the cuboid's top
+    x_dvl = START[0] - 0.2                                  # the DVL is 0.2 m aft of the body origin
+    c = JsonClient(rb.endpoints[("dvl", "dvl-json")].address)
+
+    def altitude() -> float:
+        rb.put(z)
+        c.lines(0.25)
+        alts = [m["altitude"] for m in c.lines(0.5) if m.get("type") == "velocity" and m["velocity_valid"]]
+        assert alts
+        return float(np.median(alts))
+
+    try:
+        assert altitude() == pytest.approx(0.8, abs=0.02)
+        rb.lt.run(rb.bridge.move_object("cuboid", (x_dvl, 0.0, 2.85), (0.0, 0.0, 0.0)))
+        assert altitude() == pytest.approx(0.5, abs=0.02)
+        rb.lt.run(rb.bridge.move_object("cuboid", (0.275, 0.0, 2.85), (0.0, 0.0, 0.0)))
+        assert altitude() == pytest.approx(0.8, abs=0.02)
+    finally:
+        rb.lt.run(rb.bridge.move_object("cuboid", (0.275, 0.0, 2.85), (0.0, 0.0, 0.0)))
+        c.close()
