@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import socket
 import time
 from importlib import resources
 from typing import Any, Callable
@@ -39,6 +40,7 @@ CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' 
        "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 SEND_TIMEOUT_S = 10.0   # a page that takes nothing for this long is closed
 COMMANDS_PER_S = 20.0
+SNDBUF = 128 * 1024     # [bytes] kernel send buffer of each connection
 
 
 def _asset(name: str) -> bytes:
@@ -99,6 +101,8 @@ class Console:
         self.max_pages = int(max_pages)
         self.max_connections = max(int(max_connections), self.max_pages + 1)
         self.refused_connections = 0
+        self.sent_closed = 0      # messages sent to, and dropped for, pages since closed
+        self.dropped_closed = 0
         self._server: asyncio.AbstractServer | None = None
         self.hub = Hub(bridge, camera)
         self.hub.extra_status["console"] = self.status
@@ -128,8 +132,20 @@ class Console:
         self._runner = web.AppRunner(self.app(), access_log=None, keepalive_timeout=15.0)
         await self._runner.setup()
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(self._accept(self._runner.server), self.host, self.port, backlog=32)
-        self.port = int(self._server.sockets[0].getsockname()[1])
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            # accepted sockets inherit it: a page that stops reading backs up here, not in megabytes of kernel buffer
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SNDBUF)
+            sock.bind((self.host, self.port))
+            sock.listen(32)
+            sock.setblocking(False)
+            self._server = await loop.create_server(self._accept(self._runner.server), sock=sock)
+        except BaseException:
+            sock.close()
+            raise
+        self.port = int(sock.getsockname()[1])
         log.info("console at %s", self.url)
         return self.url
 
@@ -137,16 +153,27 @@ class Console:
         """aiohttp's protocol for each connection, up to ``max_connections`` at once; beyond, the
         connection is closed at once (and the refusal logged at most once a second). aiohttp
         closes a connection idle for 15 s, before or between requests."""
+        loop = asyncio.get_running_loop()
+        pending = [0]  # connections accepted in this burst, not yet in server.connections
+
+        def settle() -> None:
+            pending[0] = 0
+
         def factory() -> asyncio.BaseProtocol:
-            if len(server.connections) >= self.max_connections:
+            # asyncio accepts a burst of connections before any of them is registered: count those too
+            if len(server.connections) + pending[0] >= self.max_connections:
                 return _Refuse(self)
+            if not pending[0]:
+                loop.call_soon(settle)  # runs after this burst's handlers, before the next accept
+            pending[0] += 1
             return server()
         return factory
 
     def status(self) -> dict[str, Any]:
         pages = list(self.hub.pages)
-        return {"clients": len(pages), "sent": sum(p.sent for p in pages),
-                "dropped": sum(p.dropped for p in pages), "refused": self.refused_pages + self.refused_connections,
+        return {"clients": len(pages), "sent": self.sent_closed + sum(p.sent for p in pages),
+                "dropped": self.dropped_closed + sum(p.dropped for p in pages),
+                "refused": self.refused_pages + self.refused_connections,
                 "bad_messages": self.bad_messages, "ticks": self.hub.ticks,
                 "tick_ms": round(self.hub.tick_seconds * 1e3, 1),
                 **({"last_error": self.last_error} if self.last_error else {})}
@@ -195,6 +222,8 @@ class Console:
             log.warning("console: %s", self.last_error)
         finally:
             self.hub.remove_page(page)
+            self.sent_closed += page.sent
+            self.dropped_closed += page.dropped
             sender.cancel()
             await asyncio.gather(sender, return_exceptions=True)
             if not ws.closed:

@@ -191,3 +191,29 @@ def test_a_connection_flood_is_bounded_and_idle_connections_do_not_hold_the_cons
             await _next_text(ws, "state")
     run(still_served())
     assert "console: refused" in console_bridge.log() and "client limit 32 reached" in console_bridge.log()
+
+
+def test_a_page_that_stops_reading_loses_frames_instead_of_queueing_them(console_bridge):
+    import socket
+    import time
+
+    url = console_url(console_bridge)
+    host, port = url.split("//", 1)[1].rstrip("/").rsplit(":", 1)
+
+    async def dropped() -> float:
+        async with aiohttp.ClientSession() as s, s.ws_connect(url + "ws") as ws:
+            return (await _next_text(ws, "state"))["devices"]["console"]["dropped"]
+
+    before = run(dropped())
+    stalled = socket.socket()
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)     # a page that reads nothing
+    stalled.connect((host, int(port)))
+    stalled.sendall(f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    try:
+        time.sleep(4.0)                                                  # states and sonar frames keep coming
+        after = run(dropped())
+    finally:
+        stalled.close()
+    assert after - before >= 10, (before, after)                        # newer updates replaced unsent ones
+    assert console_bridge.proc.poll() is None
