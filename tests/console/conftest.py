@@ -1,6 +1,6 @@
 """One ``hilsim run`` with its console for every test here (a subprocess: the bridge as a user runs it),
-and a DDF client reading its sonar stream (a head pings while a client asks: the console shows the
-frames the devices serve)."""
+and a client of each sonar head (a head pings while a client asks: the console shows the frames the
+devices serve): a DDF reader, an Oculus client firing at 5 Hz, an ARIS client at 5 frames/s."""
 
 from __future__ import annotations
 
@@ -26,13 +26,20 @@ def _drain(sock: socket.socket, stop: threading.Event) -> None:
 
 @pytest.fixture(scope="session")
 def console_bridge(tmp_path_factory):
+    from tests.runtime import abuse_clients as ac
+
     b = start_bridge(tmp_path_factory.mktemp("console"), "--console", "0", "--status-interval", "0")
     host, port = b.tcp("ddf-stream")
     sock = socket.create_connection((host, port), timeout=10)
     stop = threading.Event()
     reader = threading.Thread(target=_drain, args=(sock, stop), daemon=True)
     reader.start()
+    heads = [ac.OculusFirer(b.endpoint("oculus")["address"], rate=3), ac.ArisClient(b.endpoint("aris")["address"])]
+    for h in heads:
+        h.start()
     yield b
+    for h in heads:
+        h.stop()
     stop.set()
     reader.join(5)
     sock.close()

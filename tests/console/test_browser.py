@@ -13,9 +13,9 @@ from __future__ import annotations
 import math
 import os
 import time
-import numpy as np
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.console.conftest import console_url
@@ -82,6 +82,8 @@ BRIGHT_JS = """(id) => {
 
 def test_the_page_shows_the_bridge_live_without_javascript_errors(page, bridge):
     assert wait_for(lambda: stats(page)["sonarFrames"].get(SONAR, 0) >= 5, 20), stats(page)
+    heads = {e["device"] for e in bridge.endpoints if e["protocol"] in ("ddf-stream", "oculus", "aris")}
+    assert wait_for(lambda: all(stats(page)["sonarFrames"].get(h, 0) >= 2 for h in heads), 20), stats(page)
     s = stats(page)
     assert s["states"] >= 5 and not s["errors"] and not s["serverErrors"]
     rows = page.eval_on_selector_all("#endpoints tbody tr", "rs => rs.map(r => r.dataset.device)")
