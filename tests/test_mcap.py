@@ -198,7 +198,7 @@ def test_log_times_are_simulation_time_and_monotonic(recorded):
 def test_sonar_images_decode_to_the_frames_a_ddf_client_received(recorded):
     topics, _ = read(recorded["path"])
     ddf = recorded["ddf"]
-    assert len(ddf) >= 10
+    assert len(ddf) >= 5
     polar = topics["/sonar/sonar_ddf/polar"]
     info = topics["/sonar/sonar_ddf/info"]
     schema = polar[0][0]
