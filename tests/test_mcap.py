@@ -238,6 +238,11 @@ def test_the_camera_and_the_world_decode(recorded):
     cuboid = next(e for e in scene.entities if e.id == "cuboid")
     pts = np.array([[p.x, p.y, p.z] for p in cuboid.triangles[0].points])
     assert pts.shape == (36, 3) and pts[:, 0].min() == pytest.approx(0.0, abs=1e-6)   # front face at x = 0
+    schema = topics["/tf"][0][0]
+    FrameTransforms = message_class(schema.name, schema.data)
+    children = [[tf.child_frame_id for tf in FrameTransforms.FromString(m.data).transforms] for _, _, m in topics["/tf"]]
+    assert sum("ned" in c for c in children) >= RUN_S - 1        # the fixed frames again each second (live viewers)
+    assert all("base_link" in c for c in children[1:]) and {"sonar", "camera"} <= set(children[0])
     schema = topics["/vehicle/pose"][0][0]
     PoseInFrame = message_class(schema.name, schema.data)
     first = PoseInFrame.FromString(topics["/vehicle/pose"][0][2].data)

@@ -67,6 +67,9 @@ class Recorder:
         self._handles: list[Any] = []
         self._epoch = 0.0
         self._open = False
+        self._scene: Any = None
+        self._static_next = 1.0   # [s] simulation time the fixed frames are logged again
+        self._scene_next = 10.0   # ... and the scene, for live viewers
         self._pending: list[tuple[Callable[[str, Mapping[str, Any]], None], str, Mapping[str, Any]]] = []
         self._closed = False
 
@@ -184,10 +187,7 @@ class Recorder:
                                        SceneUpdate, TriangleListPrimitive, Vector3)
 
         stamp = self._stamp(t)
-        tfs = [self._tf("world", "ned", (0, 0, 0), np.diag([1.0, -1.0, -1.0]), stamp)]
-        for s in self.bridge.scenario.sensors:
-            tfs.append(self._tf("base_link", s.name, s.mount.position, s.mount.rotation, stamp))
-        self._log("/tf", self.channels["/tf"], FrameTransforms(transforms=tfs), t)
+        self._log("/tf", self.channels["/tf"], FrameTransforms(transforms=self._static_tfs(stamp)), t)
         identity = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
         entities = []
         for o in self.bridge.scenario.objects:
@@ -207,7 +207,15 @@ class Recorder:
                                     orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
                           size=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
                           color=Color(r=0.95, g=0.72, b=0.29, a=1.0))]))
-        self._log("/world", self.channels["/world"], SceneUpdate(entities=entities), t)
+        self._scene = SceneUpdate(entities=entities)
+        self._log("/world", self.channels["/world"], self._scene, t)
+
+    def _static_tfs(self, stamp: Any) -> list[Any]:
+        """world -> ned (z up for viewers) and base_link -> each sensor mount."""
+        tfs = [self._tf("world", "ned", (0, 0, 0), np.diag([1.0, -1.0, -1.0]), stamp)]
+        for s in self.bridge.scenario.sensors:
+            tfs.append(self._tf("base_link", s.name, s.mount.position, s.mount.rotation, stamp))
+        return tfs
 
     # -- listeners (called in the publishing device's call: no blocking, no await) -------
     def _on_pose(self, t: float) -> None:
@@ -217,8 +225,14 @@ class Recorder:
         t = float(s.time)
         pose = s.pose
         stamp = self._stamp(t)
-        self._log("/tf", self.channels["/tf"], FrameTransforms(
-            transforms=[self._tf("ned", "base_link", pose.position, pose.rotation, stamp)]), t)
+        tfs = [self._tf("ned", "base_link", pose.position, pose.rotation, stamp)]
+        if t >= self._static_next:  # again once a second: a viewer that joins live gets the fixed frames too
+            self._static_next = t + 1.0
+            tfs = self._static_tfs(stamp) + tfs
+            if self.server is not None and t >= self._scene_next and self._scene is not None:
+                self._scene_next = t + 10.0
+                self._log("/world", self.channels["/world"], self._scene, t)
+        self._log("/tf", self.channels["/tf"], FrameTransforms(transforms=tfs), t)
         x, y, z, w = quaternion(pose.rotation)
         p = [float(v) for v in pose.position]
         self._log("/vehicle/pose", self.channels["/vehicle/pose"], PoseInFrame(
