@@ -173,13 +173,17 @@ def contact_loop(seconds: float, start: tuple[float, float, float], cmds: list[f
         if k % every == 0:
             thrusters.command_all("normalized", cmds, state.time)
         state = contacts.step(state, vehicle.step_with_thrusters(state, dt, thrusters), dt)
-    start_t = time.perf_counter()
+    start_t, cpu = time.perf_counter(), time.process_time()
     for k in range(n):
         if k % every == 0:
             thrusters.command_all("normalized", cmds, state.time)
         state = contacts.step(state, vehicle.step_with_thrusters(state, dt, thrusters), dt)
         touching += contacts.last.touching
+    _CPU.append((time.process_time() - cpu) / n)
     return n / (time.perf_counter() - start_t), touching
+
+
+_CPU: list[float] = []  # [s] CPU time per step of the last contact_loop runs (steady under load)
 
 
 def report_contacts() -> None:
@@ -209,9 +213,11 @@ def report_contacts() -> None:
             sps, rate, touching = max(physics_direct(10.0) for _ in range(2)), RATE, 0
         else:
             world, start, cmds, rate = args
+            _CPU.clear()
             sps, touching = max((contact_loop(10.0, start, cmds, world, rate) for _ in range(2)),
                                 key=lambda r: r[0])
-        share = f"{100.0 * touching / (10.0 * rate):3.0f}% of steps in contact" if args else ""
+        share = (f"{100.0 * touching / (10.0 * rate):3.0f}% of steps in contact, {1e6 * min(_CPU):6.1f} us CPU/step"
+                 if args else "")
         print(f"  {label:30s}{sps:9.0f} steps/s = {sps / rate:6.0f}x real time   ({1e6 / sps:6.1f} us/step) {share}")
 
 
