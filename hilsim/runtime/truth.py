@@ -271,9 +271,14 @@ class RunTruth:
                                    devices=st.get("devices", {}), recorder=self.recorder)
         if self.summary_path is not None:
             write_summary(self.summary_path, self.summary)
+        run_dir = getattr(self.bridge, "run_dir", None)
+        gone = bool(getattr(self.bridge, "_own_run_dir", False)) and run_dir is not None and \
+            Path(run_dir) in self.recorder.path.parents
         logging.getLogger("hilsim.truth").info(
-            "ground truth: %s (%d rows), %d contact%s; summary: %s", self.recorder.path, self.recorder.rows,
-            self.events.count, "" if self.events.count == 1 else "s", self.summary_path)
+            "ground truth: %s (%d rows), %d contact%s; summary: %s%s", self.recorder.path, self.recorder.rows,
+            self.events.count, "" if self.events.count == 1 else "s", self.summary_path,
+            " (in the temporary run folder, removed at exit: keep them with --endpoints, --pty-dir, --truth "
+            "and --summary)" if gone else "")
         return self.summary
 
 
