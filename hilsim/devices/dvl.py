@@ -214,7 +214,8 @@ class DvlDevice(TcpServerDevice):
         if name == "trigger_ping":
             if self.triggers >= MAX_TRIGGERS:
                 return dj.response(name, False, "trigger queue is full")
-            self.triggers += 1
+            if not self.config.acoustic_enabled:   # with acoustics on the DVL pings anyway: nothing to queue
+                self.triggers += 1
             return dj.response(name, True)
         if name == "get_version_info":
             return dj.response(name, True, "", {"chipid": "0x0000000000000000", "hardware_revision": 4,
@@ -266,7 +267,8 @@ class DvlDevice(TcpServerDevice):
         if letter == "x":
             if self.triggers >= MAX_TRIGGERS:
                 return ds.NACK
-            self.triggers += 1
+            if not self.config.acoustic_enabled:
+                self.triggers += 1
             return ds.ACK
         if letter == "p":
             if len(opts) != 1 or opts[0] not in ("0", "1", "2", "3", "6"):

@@ -198,6 +198,7 @@ def test_dvl_reports_altitude_and_rate_from_the_geometry(rb: RunningBridge, dvl:
 
 def test_dvl_velocity_north_in_its_frame(rb: RunningBridge, dvl: JsonClient) -> None:
     rb.put(START[2], v=(0.3, 0.0, 0.0))
+    dvl.lines(0.12)                       # reports of pings before the vehicle was set moving
     got = []
     end = time.monotonic() + 1.0
     while time.monotonic() < end and len(got) < 3:
