@@ -317,3 +317,26 @@ def test_the_6dof_bluerovs_rest_on_the_floor_too(name: str) -> None:
     assert cm.last.objects == ("floor",)
     # within the damping of one step's velocity, k_w dt / (2 m_w) = 0.26 % for the BlueROV
     assert cm.last.force == pytest.approx(wrench[2] + prof.hydrostatics.net_down, rel=5e-3)
+
+
+def test_sliding_across_a_meshs_internal_edge_does_not_snag() -> None:
+    """A plane primitive is two triangles meeting on a diagonal: pressed onto it and driven across
+    that diagonal without friction, the vehicle moves exactly as on a box floor (no internal edge),
+    never pushed sideways or up."""
+    plane = trimesh.Trimesh(np.array([[-10.0, -10, 5], [10, -10, 5], [10, 10, 5], [-10, 10, 5]]),
+                            np.array([[0, 3, 1], [1, 3, 2]]), process=False)  # normals up (-z)
+    assert np.allclose(plane.face_normals, [0, 0, -1])
+    sheet = World([WorldObject("sheet", plane, Material("ice", 1e6, friction=0.0), watertight=False)])
+    slab = World([box("slab", [-10, -10, 5], [10, 10, 6], friction=0.0)])
+    wrench = full(VERTICAL) + full(HORIZONTAL)          # down and forward; yawed 45 deg to cross the diagonal
+    start = VehicleState(position=np.array([-3.0, 0.0, 4.7]), attitude=np.array([0.0, 0.0, math.radians(-45)]))
+    runs = []
+    for world in (sheet, slab):
+        rows = []
+        simulate(CYCLOPS, world, start, wrench, 8.0, every=lambda a, b, c: rows.append(b.flat()))
+        runs.append(np.array(rows))
+    a, b = runs
+    crossed = (a[:, 1] - a[:, 0] > 0).any() and (a[:, 1] - a[:, 0] < 0).any()
+    assert crossed                                          # it went over the diagonal y = x
+    assert np.allclose(a[:, 2], 5.0 - HALF[2], atol=1.5e-3)   # on the surface all along
+    assert np.allclose(a[:, :3], b[:, :3], atol=1e-6) and np.allclose(a[:, 6:9], b[:, 6:9], atol=1e-6)
