@@ -346,6 +346,15 @@ class ContactModel:
         if len(idx) == 0:
             return [], sep
         tris, normals = shapes.triangles(i, idx)
+        # only a triangle whose plane the hull straddles can touch it; the others are at least
+        # their plane's distance away
+        plane = np.abs((normals * (c - tris[:, 0])).sum(axis=1)) - np.abs(normals @ rot) @ half
+        cut = plane <= 0.0
+        if not np.all(cut):
+            sep = min(sep, float(plane[~cut].min()))
+            if not np.any(cut):
+                return [], sep
+            tris, normals = tris[cut], normals[cut]
         axes, op, om = sat_triangles(c, rot, half, tris, normals)
         if np.array_equal(rot, prot):  # same axes: the previous projections are a shift
             shift = axes @ (c - pc)
