@@ -153,10 +153,10 @@ def served_within(proto: str, addr: str, seconds: float) -> tuple[float | None, 
     return None, refusals
 
 
-def refused_now(addr: str) -> bool:
-    """A fresh connection is closed by the server at once (within 1 s)."""
+def refused_now(addr: str, within: float = 2.0) -> bool:
+    """A fresh connection is closed by the server at once (within ``within`` [s], for a loaded machine)."""
     with socket.create_connection(ac.host_port(addr), timeout=2.0) as s:
-        return ac.wait_until(lambda: ac.refused(s), 1.0, 0.02)
+        return ac.wait_until(lambda: ac.refused(s), within, 0.02)
 
 
 # ------------------------------------------------------------------ tests
@@ -179,7 +179,8 @@ def test_stale_connections_give_way_to_a_well_behaved_client(bridge, proto):
         t_fill = time.monotonic()
         time.sleep(0.3)
         assert sum(not ac.refused(k) for k in held) == limit, "the stale connections did not fill the server"
-        assert refused_now(addr), "a full server with fresh connections must refuse"
+        # (within the grace: the stale ones are not evictable yet)
+        assert refused_now(addr, within=0.8), "a full server with fresh connections must refuse"
         bound = GRACE + 1.0 + FIRST_RESPONSE[proto]
         took, refusals = served_within(proto, addr, bound + 5.0 - (time.monotonic() - t_fill))
         waited = time.monotonic() - t_fill
@@ -221,20 +222,20 @@ def test_a_server_full_of_well_behaved_clients_refuses_and_drops_none(bridge, pr
         assert ac.wait_until(lambda: all(c.stats.received >= 2 for c in clients), 15), \
             [(c.stats.received, c.error) for c in clients]
         counts = [c.stats.received for c in clients]
-        t0 = time.monotonic()
+        time.sleep(GRACE + 0.5)  # every held client well past the grace
+        attempts = 4
         refused = 0
-        while time.monotonic() - t0 < GRACE + 1.0:  # past the grace: still refused, every time
+        for _ in range(attempts):  # still refused, every time
             refused += refused_now(addr)
-            time.sleep(0.5)
-        attempts = int((GRACE + 1.0) / 0.5)
-        time.sleep(0.3)
+            time.sleep(0.2)
         grew = [c.stats.received - n for c, n in zip(clients, counts)]
     finally:
         for c in clients:
             c.stop()
     log = bridge.log()
-    print(f"\n{proto}: {refused} newcomers refused over {GRACE + 1.0:.0f} s; the held clients received {grew} meanwhile")
-    assert refused >= attempts - 1, (refused, attempts)
+    print(f"\n{proto}: {refused} of {attempts} newcomers refused past the grace; the held clients received "
+          f"{grew} meanwhile")
+    assert refused == attempts, (refused, attempts)
     for c in clients:
         assert c.error is None and c.stats.reconnects == 0 and c.stats.bad == 0 and c.stats.lost == 0, \
             (c.name, c.error, c.stats)
