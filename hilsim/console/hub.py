@@ -90,6 +90,26 @@ def _num(v: Any) -> Any:
     return None
 
 
+class LastErrors(logging.Handler):
+    """The last warning or error line the log said about each device (a line starting with its
+    name, as the devices and their links write them), for the endpoints table."""
+
+    def __init__(self, names: list[str]) -> None:
+        super().__init__(logging.WARNING)
+        self.names = sorted(names, key=len, reverse=True)   # "depth_rtu" before "depth"
+        self.lines: dict[str, str] = {}
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            msg = record.getMessage()
+        except Exception:  # noqa: BLE001 - a bad log call is not ours to raise
+            return
+        for name in self.names:
+            if msg.startswith(name) and msg[len(name):len(name) + 1] in (":", " "):
+                self.lines[name] = msg[:200]
+                return
+
+
 class Hub:
     """Latest values from the bridge's topics, and the pages they go to."""
 
@@ -106,6 +126,7 @@ class Hub:
         self.faults: deque[dict[str, Any]] = deque(maxlen=20)
         self.contacts: deque[dict[str, Any]] = deque(maxlen=20)
         self.track: deque[list[float]] = deque(maxlen=1200)
+        self.last_errors = LastErrors([])
         self._unsub: list[Callable[[], None]] = []
         self._page_unsub: list[Callable[[], None]] = []
         self._tick_task: asyncio.Task[None] | None = None
@@ -117,6 +138,8 @@ class Hub:
 
     # -- subscriptions ----------------------------------------------------------
     def start(self) -> None:
+        self.last_errors = LastErrors([d.name for d in self.bridge.devices] + ["console"])
+        logging.getLogger("hilsim").addHandler(self.last_errors)
         obs = self.bridge.observers
         self._unsub = [obs.subscribe("command/*", self._on_command), obs.subscribe("fault", self._on_event),
                        obs.subscribe("contact", self._on_event)]
@@ -242,6 +265,9 @@ class Hub:
                 devices[name] = {k: _num(v) for k, v in fn().items()}
             except Exception as exc:  # noqa: BLE001
                 devices[name] = {"status_error": str(exc)[:80]}
+        for name, line in self.last_errors.lines.items():
+            if name in devices:
+                devices[name]["last_error"] = line
         readings = {dev: {k: _num(v) for k, v in r.items() if k != "t" and _num(v) is not None}
                     for dev, r in self.readings.items()}
         try:
@@ -261,6 +287,7 @@ class Hub:
         return round(a, 3) if math.isfinite(a) else None
 
     async def close(self) -> None:
+        logging.getLogger("hilsim").removeHandler(self.last_errors)
         for u in self._unsub + self._page_unsub:
             u()
         self._unsub, self._page_unsub = [], []

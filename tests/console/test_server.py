@@ -188,7 +188,9 @@ def test_a_connection_flood_is_bounded_and_idle_connections_do_not_hold_the_cons
 
     async def still_served():
         async with aiohttp.ClientSession() as s, s.ws_connect(console_url(console_bridge) + "ws") as ws:
-            await _next_text(ws, "state")
+            state = await _next_text(ws, "state")
+            # the endpoints table's last error line: what the log said last about the device
+            assert "client limit 32 reached" in state["devices"]["console"]["last_error"]
     run(still_served())
     assert "console: refused" in console_bridge.log() and "client limit 32 reached" in console_bridge.log()
 
