@@ -228,6 +228,16 @@ class ContactModel:
         return ContactModel(hull, inverse_mass(profile), world, surface)
 
     @property
+    def surface(self) -> bool:
+        """Whether the water surface (z = 0) holds the hull under it."""
+        return self._surface
+
+    @surface.setter
+    def surface(self, on: bool) -> None:
+        self._surface = bool(on)
+        self._safe = None
+
+    @property
     def world(self) -> Any:
         return self._world
 
