@@ -159,3 +159,28 @@ def test_same_seed_same_pings(tank) -> None:
         pa, pb = a.ping(_state(t=0.1 * k, v=(0.2, 0.1, 0.0))), b.ping(_state(t=0.1 * k, v=(0.2, 0.1, 0.0)))
         assert np.array_equal(pa.velocity, pb.velocity) and pa.altitude == pb.altitude
     assert not np.array_equal(_dvl(tank, seed=8).ping(_state()).distance, _dvl(tank, seed=7).ping(_state()).distance)
+
+
+def test_three_beams_keep_lock_two_do_not(tank) -> None:
+    """Heading 45 deg, 0.5 m above the cuboid's top, the four footprints form a diamond 0.21 m around the DVL.
+    With range mode 0 (0.05-0.6 m) the beams landing on the floor (0.8 m down) are out of range: three beams
+    on the top keep bottom lock (the velocity and the 0.5 m altitude are still right), two do not."""
+    dvl = _dvl(tank)
+    dvl.range_mode = "=0"
+    yaw = math.radians(45.0)
+    r = rpy_to_matrix(0.0, 0.0, yaw)
+    z = CUBOID_TOP_Z - 0.5 - 0.35
+    v_body = r.T @ np.array([0.1, 0.0, 0.0])
+
+    def at(dvl_x: float, dvl_y: float, k: int):
+        pos = np.array([dvl_x, dvl_y, 0.0]) - r @ np.array([-0.2, 0.0, 0.0])
+        return dvl.ping(VehicleState(0.1 * k, np.array([pos[0], pos[1], z]), np.array([0.0, 0.0, yaw]), v_body))
+
+    # footprints at (0.51, 0.05), (0.09, 0.05), (0.30, -0.16) on the 0.55 x 0.40 top; (0.30, 0.26) off it
+    pings = [at(0.3, 0.05, k) for k in range(20)]
+    assert all(p.valid and int(p.beam_valid.sum()) == 3 for p in pings)
+    assert np.mean([p.altitude for p in pings]) == pytest.approx(0.5, abs=0.005)
+    assert np.mean([p.velocity for p in pings], axis=0) == pytest.approx(v_body, abs=0.002)
+    # at (0.45, 0.12): (0.66, 0.12) and (0.45, 0.33) fall off the top, (0.24, 0.12) and (0.45, -0.09) on it: no lock
+    p = at(0.45, 0.12, 0)
+    assert int(p.beam_valid.sum()) == 2 and not p.valid and p.altitude == -1.0
