@@ -139,15 +139,20 @@ class Device(ABC):
             raise self.option_error(key, f"expected a relative path, got {value!r}")
         return value or ""
 
-    def sonar_mount(self, key: str = "sensor") -> str:
-        """The scenario sensor named by option ``key``, which must be a sonar; its name."""
+    def sensor_mount(self, kind: str, key: str = "sensor") -> Any:
+        """The scenario sensor mount named by option ``key``, which must be of ``kind`` (``sonar``,
+        ``dvl``, ``gnss``, ``echosounder`` ...); OptionError naming ``key`` otherwise."""
         try:
             mount = self.ctx.scenario.sensor(str(self.options[key]))
         except KeyError as exc:
             raise self.option_error(key, str(exc.args[0])) from None
-        if mount.kind != "sonar":
-            raise self.option_error(key, f"sensor {mount.name!r} is a {mount.kind}, not a sonar")
-        return mount.name
+        if mount.kind != kind:
+            raise self.option_error(key, f"sensor {mount.name!r} is a {mount.kind}, not a {kind}")
+        return mount
+
+    def sonar_mount(self, key: str = "sensor") -> str:
+        """The name of the scenario sonar named by option ``key`` (see :meth:`sensor_mount`)."""
+        return str(self.sensor_mount("sonar", key).name)
 
     # -- lifecycle -----------------------------------------------------------------
 
