@@ -50,9 +50,10 @@ def _asset(name: str) -> bytes:
 class Page:
     """One open page: its WebSocket, one slot per kind of message, and its sender task."""
 
-    def __init__(self, ws: web.WebSocketResponse, peer: str) -> None:
+    def __init__(self, ws: web.WebSocketResponse, peer: str, transport: asyncio.Transport | None = None) -> None:
         self.ws = ws
         self.peer = peer
+        self.transport = transport
         self.slots: dict[str, str | bytes] = {}
         self.wake = asyncio.Event()
         self.show_camera = False
@@ -86,7 +87,13 @@ class Page:
                 kind = next(iter(self.slots))
                 data = self.slots.pop(kind)
                 coro = self.ws.send_str(data) if isinstance(data, str) else self.ws.send_bytes(data)
-                await asyncio.wait_for(coro, SEND_TIMEOUT_S)
+                try:
+                    await asyncio.wait_for(coro, SEND_TIMEOUT_S)
+                except asyncio.TimeoutError:  # it took nothing for that long: drop the page
+                    log.warning("console: page %s took nothing for %.0f s; closed", self.peer, SEND_TIMEOUT_S)
+                    if self.transport is not None:
+                        self.transport.abort()
+                    raise
                 self.sent += 1
 
 
@@ -203,7 +210,7 @@ class Console:
             raise web.HTTPServiceUnavailable(text=f"at most {self.max_pages} pages at once")
         ws = web.WebSocketResponse(compress=False, max_msg_size=4096, heartbeat=20.0, writer_limit=65536)
         await ws.prepare(request)
-        page = Page(ws, str(request.remote))
+        page = Page(ws, str(request.remote), request.transport)
         self.hub.add_page(page)
         sender = asyncio.ensure_future(page.send_loop())
         try:
