@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Mapping, Sequence
 
 log = logging.getLogger("hilsim.contact")
+_tlog = logging.getLogger("hilsim.truth")
 
 DEFAULT_TRUTH_RATE = 20.0  # [Hz]
 BASE_COLUMNS = ("time_s", "north_m", "east_m", "down_m", "roll_deg", "pitch_deg", "yaw_deg",
@@ -135,6 +136,7 @@ class TruthRecorder:
         self._file: IO[str] | None = None
         self._writer: Any = None
         self._next = -math.inf
+        self._failed = self._closed = False
         self.rows = 0
         self.last_time = 0.0
 
@@ -171,12 +173,26 @@ class TruthRecorder:
         self._next = t + self.period if self._next == -math.inf else max(self._next + self.period, t)
         self._write(state, info)
 
-    def _write(self, state: Any, info: Any) -> None:
+    def open(self) -> None:
+        """Create the file and write the header (at the first row if not called; OSError if the
+        file cannot be written: call it at start to find out then)."""
         if self._file is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file = open(self.path, "w", newline="", encoding="utf-8")
             self._writer = csv.writer(self._file)
             self._writer.writerow(self.columns)
+
+    def _write(self, state: Any, info: Any) -> None:
+        if self._failed or self._closed:
+            return
+        try:
+            self._row(state, info)
+        except OSError as exc:  # a full disk: the run goes on without its truth file
+            self._failed = True
+            _tlog.error("ground truth: cannot write %s (%s); no more rows are recorded", self.path, exc)
+
+    def _row(self, state: Any, info: Any) -> None:
+        self.open()
         f = state.flat()
         row = [f"{state.time:.6f}"] + [_num(v) for v in f[0:3]] + [_num(v * _DEG) for v in f[3:6]]
         row += [_num(v) for v in f[6:9]] + [_num(v * _DEG) for v in f[9:12]]
@@ -211,12 +227,15 @@ class TruthRecorder:
     def close(self) -> None:
         """End the open contact events and close the file (a file with its header even if no tick ran)."""
         self.events.close()
-        if self._file is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            with open(self.path, "w", newline="", encoding="utf-8") as fh:
-                csv.writer(fh).writerow(self.columns)
+        if self._closed:
             return
-        self._file.close()
+        self._closed = True
+        try:
+            self.open()  # a file with its header even if no tick ran
+            assert self._file is not None
+            self._file.close()
+        except OSError as exc:
+            _tlog.error("ground truth: cannot write %s (%s)", self.path, exc)
         self._file = None
 
 
@@ -245,6 +264,7 @@ class RunTruth:
             columns = getattr(device, "truth_columns", None)
             if columns is not None:
                 self.recorder.add_columns(*columns())
+        self.recorder.open()  # a file that cannot be written is an error at start, not mid-run
         self.summary: dict[str, Any] | None = None
 
     @property
@@ -274,7 +294,7 @@ class RunTruth:
         run_dir = getattr(self.bridge, "run_dir", None)
         gone = bool(getattr(self.bridge, "_own_run_dir", False)) and run_dir is not None and \
             Path(run_dir) in self.recorder.path.parents
-        logging.getLogger("hilsim.truth").info(
+        _tlog.info(
             "ground truth: %s (%d rows), %d contact%s; summary: %s%s", self.recorder.path, self.recorder.rows,
             self.events.count, "" if self.events.count == 1 else "s", self.summary_path,
             " (in the temporary run folder, removed at exit: keep them with --endpoints, --pty-dir, --truth "

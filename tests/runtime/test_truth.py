@@ -261,3 +261,24 @@ def test_the_bridge_publishes_contacts_counts_them_and_records_faults(tmp_path: 
     assert summary["faults"] == [{"t_s": 1.0, "target": "thruster:front_left", "fault": "fail", "on": True},
                                  {"t_s": 2.0, "target": "thruster:front_left", "fault": "fail", "on": False}]
     assert summary["contacts"]["count"] == 1 and summary["sim_time_s"] == pytest.approx(9.0)
+
+
+def test_a_truth_file_that_cannot_be_written_fails_at_start_and_a_failing_disk_never_stops_the_run(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    ts = PROFILE.thruster_set()
+    loop = VehicleLoop(Vehicle(PROFILE), ts, VehicleState(position=np.array([-3.0, 0.0, 1.5])), world=WORLD)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(OSError):
+        TruthRecorder(tmp_path / "file" / "truth.csv", loop).open()   # a folder that is a file
+    rec = TruthRecorder(tmp_path / "truth.csv", loop, rate_hz=None).attach()
+    sched = Scheduler(VirtualClock())
+    loop.attach(sched)
+    sched.run(until=0.5)
+    rec._file.close()  # the disk fills up under the recorder: every write raises OSError (ENOSPC)
+    rec._file = open("/dev/full", "w", buffering=1)
+    rec._writer = csv.writer(rec._file)
+    caplog.set_level(logging.ERROR, logger="hilsim.truth")
+    sched.run(until=1.0)  # the physics goes on
+    assert loop.state.time == pytest.approx(1.0)
+    assert sum("cannot write" in r.getMessage() for r in caplog.records) == 1
+    rec.close()
