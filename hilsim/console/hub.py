@@ -132,6 +132,7 @@ class Hub:
         self._tick_task: asyncio.Task[None] | None = None
         self._track_handle: Any = None
         self.ticks = 0
+        self._tick_error_logged = -1e9
         self.tick_seconds = 0.0   # [s] of the loop spent building and offering page updates
         #: more rows for the endpoints table: name -> status() (the console itself, the recorder)
         self.extra_status: dict[str, Callable[[], Mapping[str, Any]]] = {}
@@ -212,7 +213,9 @@ class Hub:
             try:
                 self.tick()
             except Exception:  # noqa: BLE001 - a console bug must not stop the bridge
-                log.exception("console tick failed")
+                if t0 - self._tick_error_logged >= 10.0:   # said at most every 10 s
+                    self._tick_error_logged = t0
+                    log.exception("console tick failed")
             used = time.monotonic() - t0
             self.tick_seconds += used
             await asyncio.sleep(max(0.0, TICK_S - used))
@@ -246,14 +249,16 @@ class Hub:
                    "depth_m": round(float(pos[2]), 3), "altitude_m": self._altitude(pos),
                    "heading_deg": round(math.degrees(float(att[2])) % 360.0, 1),
                    "speed_m_s": round(float(np.linalg.norm(vel)), 3)}
+        vehicle = {k: _num(v) for k, v in vehicle.items()}   # NaN/inf -> null
         thrusters = []
         ts = b.vehicle.thrusters
         if ts is not None:
             for i, name in enumerate(ts.names):
                 tel = ts.telemetry(i)
                 cmd = self.commands.get(i, {})
-                thrusters.append({"name": name, "rpm": round(float(tel.rpm)), "max_rpm": round(
-                    float(ts.thrusters[i].profile.max_rpm)), "timed_out": bool(tel.timed_out), **cmd})
+                thrusters.append({"name": name, "rpm": _num(round(float(tel.rpm), 1)),
+                                  "max_rpm": _num(ts.thrusters[i].profile.max_rpm), "timed_out": bool(tel.timed_out),
+                                  **cmd})
         devices = {}
         for d in b.devices:
             try:

@@ -152,7 +152,7 @@ function onState(s) {
     const scale = t.kind === "rpm" || t.kind === "erpm" ? (t.max_rpm * (t.kind === "erpm" ? 7 : 1)) : t.kind === "current" ? 25 : 1;
     setBar(`thr-${i}-cmd`, cmd / (scale || 1));
     setBar(`thr-${i}-rpm`, t.rpm / (t.max_rpm || 1));
-    const rt = $(`thr-${i}-rpmtext`); if (rt) rt.textContent = ` ${t.rpm}`;
+    const rt = $(`thr-${i}-rpmtext`); if (rt) rt.textContent = ` ${t.rpm === null ? "-" : Math.round(t.rpm)}`;
     const src = $(`thr-${i}-src`);
     if (src) src.textContent = t.source ? `${t.source} (${t.kind} ${fmt(t.value, 3)})${t.timed_out ? ", timed out" : ""}` : "-";
   });
