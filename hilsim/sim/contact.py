@@ -359,6 +359,10 @@ class ContactModel:
         # only a triangle whose plane the hull straddles can touch it; the others are at least
         # their plane's distance away
         plane = np.abs((normals * (c - tris[:, 0])).sum(axis=1)) - np.abs(normals @ rot) @ half
+        # ... and whose vertices reach into the hull's slab along each of its axes (box frame)
+        q = (tris - c) @ rot
+        slab = np.max(np.maximum(q.min(axis=1) - half, -half - q.max(axis=1)), axis=1)
+        plane = np.maximum(plane, slab)
         cut = plane <= 0.0
         if not np.all(cut):
             sep = min(sep, float(plane[~cut].min()))
@@ -429,7 +433,7 @@ class ContactModel:
                 v = (v[0] + dj[0], v[1] + dj[1], v[2] + dj[2])
                 change = max(change, math.sqrt(_dot(dj, dj)))
                 jt[k] = c
-            if change < 1e-12:
+            if change < 1e-10:  # [m/s]
                 break
         # 4. positions: undo what the removed velocity moved during the step (its mean over the
         # step, for a velocity that grew steadily: the step's change / 2) along the contact (so a
