@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import math
 import struct
 import threading
 import time
@@ -258,3 +259,28 @@ def test_a_foxglove_websocket_client_receives_sonar_frames(recorded):
     img = RawImage.FromString(payload)
     assert (img.width, img.height, img.encoding) == (96, 512, "mono8") and len(img.data) == 96 * 512
     assert ts / 1e9 > 1e9
+
+
+def test_the_vehicle_fix_is_its_geodetic_position(recorded):
+    """Where the scenario gives a geodetic origin, /vehicle/fix (LocationFix) carries the vehicle's
+    position on the Earth: checked against a local flat-Earth conversion written here from the
+    WGS84 radii of curvature (not hilsim's GNSS code)."""
+    from hilsim.sim.scenario import load_scenario
+
+    origin = load_scenario(find_scenario("water_tank")).origin
+    assert origin is not None
+    topics, _ = read(recorded["path"])
+    schema = topics["/vehicle/fix"][0][0]
+    assert schema.name == "foxglove.LocationFix"
+    LocationFix = message_class(schema.name, schema.data)
+    PoseInFrame = message_class(topics["/vehicle/pose"][0][0].name, topics["/vehicle/pose"][0][0].data)
+    fix = LocationFix.FromString(topics["/vehicle/fix"][0][2].data)
+    pose = PoseInFrame.FromString(topics["/vehicle/pose"][0][2].data).pose.position
+    a, e2 = 6378137.0, 6.69437999014e-3
+    lat0 = math.radians(origin.lat_deg)
+    rm = a * (1 - e2) / (1 - e2 * math.sin(lat0) ** 2) ** 1.5
+    rn = a / math.sqrt(1 - e2 * math.sin(lat0) ** 2)
+    assert fix.latitude == pytest.approx(origin.lat_deg + math.degrees(pose.x / rm), abs=1e-7)
+    assert fix.longitude == pytest.approx(origin.lon_deg + math.degrees(pose.y / (rn * math.cos(lat0))), abs=1e-7)
+    assert fix.altitude == pytest.approx(origin.alt_m - pose.z, abs=1e-3)
+    assert len(topics["/vehicle/fix"]) == len(topics["/vehicle/pose"])

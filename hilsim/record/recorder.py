@@ -22,7 +22,8 @@ Topics (schema):
 - ``/world`` (SceneUpdate: every object's triangles, and the hull), once at the start
 - ``/reading/<device>``, ``/command/<device>``, ``/faults``, ``/contacts`` (JSON)
 
-No ``LocationFix``: a scenario has no geodetic origin today (one would add it there).
+- ``/vehicle/fix`` (LocationFix): the vehicle's true geodetic position, where the scenario gives
+  a ``[world] origin`` (the same conversion as the GNSS receiver's, without its noise or outages).
 """
 
 from __future__ import annotations
@@ -146,6 +147,8 @@ class Recorder:
         self.channels["/vehicle/pose"] = ch.PoseInFrameChannel("/vehicle/pose", context=c)
         self.channels["/vehicle/state"] = foxglove.Channel("/vehicle/state", context=c)
         self.channels["/world"] = ch.SceneUpdateChannel("/world", context=c)
+        if getattr(self.bridge.scenario, "origin", None) is not None:
+            self.channels["/vehicle/fix"] = ch.LocationFixChannel("/vehicle/fix", context=c)
         for s in self.bridge.scenario.sensors:
             if s.kind == "camera":
                 self.channels[f"/camera/{s.name}"] = ch.CompressedImageChannel(f"/camera/{s.name}", context=c)
@@ -245,6 +248,15 @@ class Recorder:
             state["thruster_rpm"] = [round(float(ts.telemetry(i).rpm), 1) for i in range(len(ts))]
             state["thruster_names"] = list(ts.names)
         self._log("/vehicle/state", self.channels["/vehicle/state"], state, t)
+        fix = self.channels.get("/vehicle/fix")
+        if fix is not None:
+            from foxglove.messages import LocationFix
+
+            from hilsim.sim.gnss import ned_to_geodetic
+
+            lat, lon, alt = (float(v) for v in ned_to_geodetic(np.asarray(p), self.bridge.scenario.origin)[0])
+            self._log("/vehicle/fix", fix, LocationFix(timestamp=stamp, frame_id="base_link", latitude=lat,
+                                                       longitude=lon, altitude=alt), t)
 
     def _on_sonar(self, topic: str, msg: Mapping[str, Any]) -> None:
         from foxglove.messages import RawImage
