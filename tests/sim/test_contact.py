@@ -340,3 +340,27 @@ def test_sliding_across_a_meshs_internal_edge_does_not_snag() -> None:
     assert crossed                                          # it went over the diagonal y = x
     assert np.allclose(a[:, 2], 5.0 - HALF[2], atol=1.5e-3)   # on the surface all along
     assert np.allclose(a[:, :3], b[:, :3], atol=1e-6) and np.allclose(a[:, 6:9], b[:, 6:9], atol=1e-6)
+
+
+def test_the_glancing_slide_with_table1_sway_damping_follows_the_reference_ode() -> None:
+    """With Cyclops' own sway damping (Table 1): m_v dv/dt = -k_v v - k_v|v| v|v| - mu F while it
+    slides, solved by scipy from the velocity just after the impact."""
+    from scipy.integrate import solve_ivp
+
+    mu, press = 0.6, 80.0
+    m_v, k_v, q_v = (CYCLOPS.params["sway"].mass, CYCLOPS.params["sway"].linear_damping,
+                     CYCLOPS.params["sway"].quadratic_damping)
+    world = World([box("wall", [10, -20, -1], [11, 20, 10], friction=mu)])
+    rows = []
+    start = VehicleState(position=np.array([9.5, 0.0, 2.0]), velocity=np.array([0.2, 0.3, 0.0]))
+    simulate(CYCLOPS, world, start, [press, 0, 0, 0, 0, 0], 6.0,
+             every=lambda a, b, c: rows.append((b.time, b.velocity[1], c.last.touching)))
+    t, v, touch = (np.array(r) for r in zip(*rows))
+    k0 = int(np.argmax(touch)) + 1                           # the tick after the impact
+    moving = v > 1e-3
+    end = int(np.argmin(moving[k0:])) + k0                   # the slide stops
+    assert end - k0 > 40 and np.all(touch[k0:end])
+    ref = solve_ivp(lambda _, y: [(-k_v * y[0] - q_v * y[0] * abs(y[0]) - mu * press) / m_v],
+                    (t[k0], t[end - 1]), [v[k0]], t_eval=t[k0:end], rtol=1e-10, atol=1e-12)
+    # within the O(dt) of applying friction after each dynamics step (damping acts first): 0.3 % of v0
+    assert np.allclose(v[k0:end], ref.y[0], atol=5e-4)
