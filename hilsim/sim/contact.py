@@ -35,6 +35,11 @@ scenes) triangle by triangle, with the triangle's outward normal preferred.
 Cost: a cached "safe sphere" (how far the hull may move before it could touch
 anything, from bounding boxes) makes a tick without anything near a handful
 of float operations; the narrow phase runs only near an object.
+
+Limits: the hull is rigid, so an impact's force is its momentum stopped within
+one step (it scales with the physics rate; the impact speed does not); an object
+the timeline moves jumps to its new pose (its velocity is not passed on: it
+pushes the hull out, it does not throw it); contacts exert no torque.
 """
 
 from __future__ import annotations
@@ -48,13 +53,12 @@ import numpy as np
 from hilsim.config import Doc, check_keys, quantity
 from hilsim.sim.collide import CORNERS, box_triangle_distance, choose_normal, convex_axes, sat_convex, sat_triangles
 from hilsim.sim.contact_shapes import WorldShapes
-from hilsim.sim.geometry import F64, rpy_to_matrix
+from hilsim.sim.geometry import F64
 from hilsim.sim.state import VehicleState
 from hilsim.sim.world import Material
 
 DEFAULT_FRICTION = Material.friction  # [1] Coulomb coefficient of a material without ``friction`` (0.5)
 SLOP = 1e-3              # [m] overlap left in a resting contact
-SURFACE = "surface"      # name of the water surface in contact reports
 _ATT_TOL = 0.05          # [rad] roll/pitch change the cached safe sphere allows
 _PREFER_FACE = 1e-3      # [m] see collide.choose_normal (a resting overlap: the slop)
 _ITERATIONS = 8
