@@ -31,7 +31,7 @@ from hilsim.runtime.observe import Observers
 from hilsim.resources import find_profile
 from hilsim.runtime.clock import LockstepClock, RealTimeClock, ScaledClock, VirtualClock
 from hilsim.runtime.faults import Faults
-from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, Scheduler, VehicleLoop
+from hilsim.runtime.scheduler import DEFAULT_PHYSICS_RATE, ONE_SHOT, Scheduler, VehicleLoop
 from hilsim.runtime.worker import RenderWorker
 from hilsim.sim.scenario import Scenario, load_scenario
 from hilsim.sim.sonar_profile import SonarProfile, SonarSettings, load_sonar_profile
@@ -241,7 +241,7 @@ class Bridge:
             self.scheduler.remove(holder[0])
             return callback(tt)
 
-        holder.append(self.scheduler.add(name, 1e12, once, offset=max(t, 0.0), priority=5, tolerance=1e12))
+        holder.append(self.scheduler.add(name, ONE_SHOT, once, offset=max(t, 0.0), priority=5, tolerance=ONE_SHOT))
 
     def object_names(self) -> list[str]:
         """The scenario's object names as written in its file."""

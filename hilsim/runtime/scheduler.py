@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from hilsim.sim.vehicle import Current, Vehicle
 
 DEFAULT_PHYSICS_RATE = 200.0  # [Hz]
+ONE_SHOT = 1e12               # [s] the period of an event that runs once (it is removed when it fires)
 
 
 @dataclass
@@ -250,6 +251,8 @@ class Scheduler:
         """One line per event: ticks, late, skipped, max and mean lateness [ms]."""
         lines = []
         for ev in self.events:
+            if ev.period >= ONE_SHOT:  # a pending one-shot (Bridge.at), not a periodic event
+                continue
             s = ev.stats
             lines.append(f"{ev.name}: {s.ticks} ticks at {1 / ev.period:g} Hz, {s.late} late, "
                          f"{s.skipped} skipped, lateness max {s.max_lateness * 1e3:.3f} ms "
