@@ -101,9 +101,17 @@ def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
         ray_constants.ENABLE_RAY_CLUSTER = False   # read when Ray picks the node's address
         ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
                  log_to_driver=False, logging_level=logging.WARNING)
+        # let the local workers finish starting (a few seconds of CPU) before the first run competes with them
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        noop = ray.remote(_noop)
+        ray.get([noop.options(num_cpus=1).remote() for _ in range(max(1, cpus))])
     else:
         ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
     return ray
+
+
+def _noop() -> None:
+    return None
 
 
 def run_ray(tasks: list[Task], on_done: OnDone, on_error: OnError, max_in_flight: int = 256) -> None:

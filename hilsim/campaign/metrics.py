@@ -60,8 +60,9 @@ def truth_metrics(cols: Mapping[str, np.ndarray], params: Mapping[str, float] | 
     ``min_clearance_m``, ``min_altitude_m``; ``max_depth_m``, ``min_depth_m``, ``final_depth_m``,
     ``final_north_m``, ``final_east_m``, ``final_yaw_deg``; ``distance_m`` (path length);
     ``max_speed_m_s`` (|(u, v, w)|); ``fault_time_s`` (time with any fault active).
-    With ``depth_target_m`` (and optionally ``depth_from_s``, default 0) in ``params``:
-    ``max_depth_error_m`` and ``rms_depth_error_m`` of ``down_m`` against the target from then on.
+    With ``depth_target_m`` in ``params``: ``max_depth_error_m`` and ``rms_depth_error_m`` of
+    ``down_m`` against the target from ``depth_from_s`` [s of simulation time] on (default 0), and
+    only over the last ``depth_last_s`` [s] of the run when that is given.
     """
     params = params or {}
     m: dict[str, Any] = {}
@@ -90,7 +91,10 @@ def truth_metrics(cols: Mapping[str, np.ndarray], params: Mapping[str, float] | 
         m["max_depth_m"], m["min_depth_m"], m["final_depth_m"] = _nanmax(z), _nanmin(z), _f(z[-1])
         target = params.get("depth_target_m")
         if target is not None:
-            sel = (t >= params.get("depth_from_s", 0.0)) & np.isfinite(z)
+            start = params.get("depth_from_s", 0.0)
+            if "depth_last_s" in params:
+                start = max(start, float(t[-1]) - params["depth_last_s"])
+            sel = (t >= start) & np.isfinite(z)
             if sel.any():
                 err = z[sel] - target
                 m["max_depth_error_m"] = _f(np.max(np.abs(err)))

@@ -23,7 +23,7 @@ KINDS = ("mission", "render")
 _TOP = ("name", "description", "kind", "scenario", "time_scale", "fast", "duration_s", "seed", "stack",
         "matrix", "pass", "metrics", "set", "render")
 _STACK = ("command", "summary", "timeout_s", "startup_timeout_s", "cpus", "env")
-_METRICS = ("depth_target_m", "depth_from_s")
+_METRICS = ("depth_target_m", "depth_from_s", "depth_last_s")
 _RENDER = ("sonar", "camera", "count", "elevation_rays", "realism", "png", "poses", "chunk")
 _POSES = ("mode", "min_m", "max_m", "yaw_deg", "waypoints_m", "list", "pitch_deg", "roll_deg")
 _START = ("position_m", "orientation_deg")

@@ -38,6 +38,8 @@ def test_truth_metrics_of_a_small_table(tmp_path: Path) -> None:
     assert m["fault_time_s"] == 1.0                        # rows at 1.0 and 1.5
     # from 1.0 s on: errors 0.0, 0.1, -0.1
     assert math.isclose(m["max_depth_error_m"], 0.1) and math.isclose(m["rms_depth_error_m"], math.sqrt(0.02 / 3), abs_tol=1e-6)  # rounded to 1 um
+    last = truth_metrics(read_truth(p), {"depth_target_m": 1.8, "depth_last_s": 0.6})   # rows at 1.5 and 2.0 s
+    assert math.isclose(last["max_depth_error_m"], 0.1) and math.isclose(last["rms_depth_error_m"], 0.1)
 
 
 def test_a_run_without_contact_counts_none(tmp_path: Path) -> None:

@@ -25,7 +25,8 @@ HAS_TRUTH = "--truth" in bridge_options()
 
 STACK = ("{python} " + str(MISSION) + " {endpoints} --out {out} --quiet --no-plots --headings '' "
          "--hold-time 2 --timeout 60")
-TRUTH_PASS = ('no_contact = "truth.contacts == 0"\ndepth = "truth.max_depth_error_m < 0.1"\n' if HAS_TRUTH else "")
+TRUTH_PASS = ('no_contact = "truth.contacts == 0"\nabove_floor = "truth.min_altitude_m > 0.8"\n'
+              'depth = "truth.max_depth_error_m < 0.05"\n' if HAS_TRUTH else "")
 CAMPAIGN = f"""name = "four"
 scenario = "water_tank"
 time_scale = 4.0
@@ -41,7 +42,7 @@ current_m_s = [[0.0, 0.0, 0.0], [0.02, 0.0, 0.0]]
 
 [metrics]
 depth_target_m = 1.8
-depth_from_s = 15.0
+depth_last_s = 5.0     # the end of the approach and the hold, whatever the dive took
 
 [pass]
 exit = "exit_code == 0"
