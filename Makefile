@@ -31,8 +31,11 @@ install-test: $(TSTAMP)
 # The main job: the live bridge on the default scenario (the paper's water tank) with the
 # reference control stack (examples/) flying its mission over the wire; live status, then a
 # summary and plots in $(OUT)/mission. RUN_ARGS="--time-scale 4" runs it 4x faster.
+# MISSION_ARGS go to examples/mission.py: by default the mission ends with a surfacing phase that
+# logs GNSS fixes (MISSION_ARGS= to stop at the hold).
+MISSION_ARGS ?= --surface
 run: $(STAMP)
-	$(BIN)/python examples/demo.py --out $(OUT)/mission $(RUN_ARGS)
+	$(BIN)/python examples/demo.py --out $(OUT)/mission $(RUN_ARGS) -- $(MISSION_ARGS)
 
 # The bridge alone, serving every device until Ctrl-C (endpoints in $(OUT)/endpoints.json).
 bridge: $(STAMP)
