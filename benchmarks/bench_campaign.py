@@ -135,7 +135,7 @@ def renders(tmp: Path, n: int) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=4, help="missions per executor (default 4)")
-    ap.add_argument("--frames", type=int, default=60, help="frames of the render campaign (default 60)")
+    ap.add_argument("--frames", type=int, default=200, help="frames of the render campaign (default 200)")
     ap.add_argument("--skip-missions", action="store_true")
     ap.add_argument("--skip-ray", action="store_true")
     a = ap.parse_args()

@@ -16,6 +16,7 @@ import logging
 import multiprocessing
 import os
 import tarfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -49,7 +50,9 @@ def run_local(tasks: list[Task], workers: int, processes: bool, on_done: OnDone,
         return
     pool: cf.Executor
     if processes and workers > 1:
-        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        # fork (the modules already imported come along) unless threads run here, which fork would not copy
+        single = threading.active_count() == 1 and "fork" in multiprocessing.get_all_start_methods()
+        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork" if single else "spawn"))
     else:
         pool = cf.ThreadPoolExecutor(workers, thread_name_prefix="campaign")
     futures: dict[cf.Future[Any], Task] = {}
