@@ -44,6 +44,7 @@ class DvlDevice(TcpServerDevice):
     OPTIONS = {**TcpServerDevice.OPTIONS, "port": dj.PORT, "sensor": "dvl", "serial": True, "path": None,
                "baudrate": 115200}
     FAULTS = ("dropout", "stuck", "noise", "lock_loss")
+    COMMAND_CHANNEL = False  # its clients mostly listen to the reports: a quiet one is not idle
     COUNTERS = ("pings", "velocity_reports", "position_reports", "commands", "bad_commands")
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:

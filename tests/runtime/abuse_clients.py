@@ -304,6 +304,40 @@ def mbap_request(tid: int, unit: int, address: int, count: int, fc: int = 3) -> 
     return struct.pack(">HHHBBHH", tid & 0xFFFF, 0, 6, unit, fc, address, count)
 
 
+class DvlReader(Client):
+    """A DVL driver: reads the JSON report lines (written from Water Linked's documented API, not
+    from hilsim's encoder); ``received`` counts velocity reports, ``bad`` lines that do not parse."""
+
+    kind = "dvl"
+
+    def __init__(self, address: str) -> None:
+        super().__init__("dvl-reader")
+        self.address = address
+
+    def body(self) -> None:
+        import json
+
+        host, port = host_port(self.address)
+        with socket.create_connection((host, port), timeout=5) as s:
+            buf = b""
+            while not self.stopping.is_set():
+                chunk = s.recv(65536)
+                if not chunk:
+                    raise ConnectionError("the DVL closed the connection")
+                buf += chunk
+                *lines, buf = buf.split(b"\n")
+                for line in lines:
+                    if not line.strip():
+                        continue
+                    try:
+                        report = json.loads(line)
+                    except ValueError:
+                        self.stats.bad += 1
+                        continue
+                    if report.get("type") == "velocity":
+                        self.stats.received += 1
+
+
 class ModbusTcpPoller(Client):
     """Reads ``count`` holding registers every 1 / ``rate_hz`` s; a reply not back within
     ``timeout`` s is lost (the connection is then reopened to resync)."""
@@ -772,6 +806,11 @@ WIRE: dict[str, WireKit] = {
         junk=lambda: random.Random(1).randbytes(65536)),
     "modbus-keller": _MODBUS,
     "modbus-witmotion": _MODBUS,
+    "dvl-json": WireKit(
+        partial=lambda: b'{"command": "get_con',
+        huge=lambda: b'{"command": "' + b"x" * 20000,  # a JSON line that never ends
+        never_reading=lambda sock, udp, rate_code, frame_rate: None,  # reports come by themselves
+        junk=lambda: b"{\n" * 32768),  # a malformed JSON line every two bytes, each answered
 }
 
 

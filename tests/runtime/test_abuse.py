@@ -38,7 +38,7 @@ pytestmark = pytest.mark.timeout(240)
 
 # the slots a server keeps for its clients: the devices' defaults (hilsim/devices/*.py)
 CLIENT_LIMITS = {"ddf-stream": 16, "oculus": 8, "aris": 4, "socketcand": 8, "modbus-keller": 32,
-                 "modbus-witmotion": 32}
+                 "modbus-witmotion": 32, "dvl-json": 16}
 HOLD = 40              # connections opened at once per server: more than any limit
 SHARED: dict = {}      # figures of the big abuse test, for the test that follows it
 FLOOD = 300            # connects per server, each reset at once
@@ -94,7 +94,7 @@ def test_endpoints_cover_every_server_of_the_default_scenario(bridge):
     assert protocols == set(CLIENT_LIMITS), protocols
     assert all(s["address"].startswith("127.0.0.1:") for s in tcp_servers(bridge))  # loopback by default
     ptys = {e["device"] for e in bridge.endpoints if e["transport"] in ("pty", "slcan")}
-    assert ptys == {"depth", "imu", "dronecan_esc", "vesc_uart", "vrcsr"}
+    assert ptys == {"depth", "imu", "dronecan_esc", "vesc_uart", "vrcsr", "dvl", "gnss", "altimeter", "ping360"}
 
 
 def test_every_tcp_server_survives_abuse_and_keeps_serving_well_behaved_clients(bridge):
@@ -108,6 +108,7 @@ def test_every_tcp_server_survives_abuse_and_keeps_serving_well_behaved_clients(
         ac.SocketcandCommander(by_proto["socketcand"]["address"], controller=2, erpm=3000),
         ac.ModbusTcpPoller(by_proto["modbus-keller"]["address"], 1, 0x0002, 2, name="depth-poller"),
         ac.ModbusTcpPoller(by_proto["modbus-witmotion"]["address"], 0x50, 0x34, 13, name="imu-poller"),
+        ac.DvlReader(by_proto["dvl-json"]["address"]),
     ]
     ctx = mp.get_context("spawn")  # the abusers' CPU is not the well-behaved clients' interpreter
     q, go = ctx.Queue(), ctx.Event()
@@ -286,7 +287,7 @@ def test_a_client_blasting_bytes_does_not_starve_the_loop(bridge):
     try:
         poller.start()
         time.sleep(0.5)
-        for proto in ("ddf-stream", "oculus", "aris", "socketcand"):
+        for proto in ("ddf-stream", "oculus", "aris", "socketcand", "dvl-json"):
             b = ac.Blaster(servers[proto]["address"], ac.junk(proto))
             b.start()
             time.sleep(0.3)
