@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python benchmarks/bench_campaign.py [--runs 4] [--frames 60] [--skip-missions] [--skip-ray]``.
 
 1. Mission runs per hour: the same campaign of ``--runs`` short reference missions
-   (examples/mission.py: dive, approach, 2 s hold; time scale 4) on the local
+   (examples/mission.py: dive, turns, approach, 2 s hold; time scale 4) on the local
    executor (a pool sized from the cores: cores / 2 CPUs per run) and on Ray's
    local mode (each run a task asking for 2 CPUs). Ray's own start-up is timed
    apart and left out of its rate (it is paid once per campaign).
@@ -36,9 +36,9 @@ from hilsim.campaign.runner import run_campaign  # noqa: E402
 MISSIONS = """name = "bench_missions"
 scenario = "water_tank"
 time_scale = 4.0
-duration_s = 100.0
+duration_s = 130.0
 [stack]
-command = "{{python}} {mission} {{endpoints}} --out {{out}} --quiet --no-plots --headings '' --hold-time 2 --timeout 60"
+command = "{{python}} {mission} {{endpoints}} --out {{out}} --quiet --no-plots --hold-time 2 --timeout 90"
 timeout_s = 90.0
 [matrix]
 seed = {seeds}
