@@ -122,7 +122,7 @@ def parse(text: str, name: str = "") -> Criterion:
     if bad is None and len(toks) < 3:
         raise CriterionError(f"incomplete comparison {text!r}: a criterion is one operand, an operator, one operand")
     if bad is not None:
-        kind, word, col = bad
+        _, word, col = bad
         raise CriterionError(f"unexpected {word!r} at column {col + 1} in {text!r}: "
                              "a criterion is one operand, an operator, one operand")
     left = _operand(toks[0][0], toks[0][1], toks[0][2])
