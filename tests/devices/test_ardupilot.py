@@ -15,6 +15,7 @@ import os
 import socket
 import struct
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable
@@ -295,63 +296,110 @@ SITL = os.environ.get("ARDUSUB_SITL", "")
 @pytest.mark.skipif(not SITL, reason="ARDUSUB_SITL does not name an ArduSub SITL binary "
                                      "(build one with shared/tools/ardusub-sitl-build)")
 def test_real_ardusub_arms_in_manual_and_dives(tmp_path: Path) -> None:
-    """ArduSub SITL flies the pool's BlueROV2: arm in MANUAL, command down, read its depth."""
+    """ArduSub SITL flies the pool's BlueROV2, as a user runs it: ``hilsim run`` and ArduSub in
+    their own processes, this test the ground station. Arm in MANUAL, command down for 8 s:
+    ArduSub's own depth (its simulated water-pressure barometer, relative to where it booted)
+    is what hilsim's vehicle did (truth.csv). ``ARDUSUB_DEFAULTS``: its defaults file
+    (sub.parm), else the one in the binary's source tree."""
+    import csv
+    import json
+    import signal
+
     mavutil = pytest.importorskip("pymavlink.mavutil")
     path = scenario(tmp_path, start_depth=0.5)
-
-    async def body(bridge: Bridge, c: Client) -> None:
-        port = int(next(e for e in bridge.endpoints if e.protocol == "ardupilot-json").address.rsplit(":", 1)[1])
-        c.close()
-        home = "55.7000,12.5500,0,0"
-        cmd = [SITL, "-w", "--model", "JSON:127.0.0.1", "--home", home, "--sim-port-out", str(port),
-               "--serial0", "tcp:0", "-I", "7"]
-        defaults = os.environ.get("ARDUSUB_DEFAULTS")
-        if defaults:
+    defaults = os.environ.get("ARDUSUB_DEFAULTS") or str(
+        Path(SITL).resolve().parents[3] / "Tools" / "autotest" / "default_params" / "sub.parm")
+    endpoints, truth = tmp_path / "endpoints.json", tmp_path / "truth.csv"
+    bridge = subprocess.Popen([sys.executable, "-m", "hilsim", "run", str(path), "--endpoints", str(endpoints),
+                               "--truth", str(truth), "--pty-dir", str(tmp_path / "run")], cwd=ROOT,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sitl = None
+    try:
+        deadline = time.monotonic() + 60
+        while not endpoints.exists():
+            assert bridge.poll() is None and time.monotonic() < deadline, "hilsim run did not start"
+            time.sleep(0.2)
+        time.sleep(0.3)
+        eps = json.loads(endpoints.read_text())
+        eps = eps if isinstance(eps, list) else eps["endpoints"]
+        port = next(e for e in eps if e["protocol"] == "ardupilot-json")["address"].rsplit(":", 1)[1]
+        cmd = [SITL, "-w", "--model", "JSON:127.0.0.1", "--home", "55.7000,12.5500,0,0", "--sim-port-out",
+               port, "--serial0", "tcp:0", "-I", "7"]
+        if Path(defaults).exists():
             cmd += ["--defaults", defaults]
-        proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            loop = asyncio.get_running_loop()
-            depth = await loop.run_in_executor(None, _dive, mavutil, 5760 + 70)
-            assert depth < -0.3  # ArduSub's altitude (negative = below the surface) went down
-        finally:
-            proc.terminate()
+        sitl = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        (t0, start_alt), (t1, end_alt) = _dive(mavutil, 5760 + 70)
+    finally:
+        if sitl is not None:
+            sitl.terminate()
             try:
-                proc.wait(10)
+                sitl.wait(5)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                sitl.kill()  # SITL may not stop on SIGTERM
+                sitl.wait(5)
+        bridge.send_signal(signal.SIGINT)
+        bridge.wait(30)
+    with open(truth, newline="") as f:
+        rows = list(csv.DictReader(f))
+    times = np.array([float(r["time_s"]) for r in rows])
+    depths = np.array([float(r["down_m"]) for r in rows])
+    dived = float(np.interp(t1, times, depths) - np.interp(t0, times, depths))
+    assert dived > 0.5  # ArduSub's outputs pushed hilsim's vehicle down ...
+    assert any(r["pwm_5"] not in ("0", "1500") for r in rows)  # ... through its servo outputs
+    # ... and ArduSub saw it: its altitude (time_boot_ms = simulated time in lockstep) fell by the
+    # depth gained; its simulated barometer reads 1024 kg/m^3 water with BARO_SPEC_GRAV 1 (default)
+    assert start_alt - end_alt == pytest.approx(1.024 * dived, rel=0.05, abs=0.05)
 
-    asyncio.run(asyncio.wait_for(session(path, body, fast=False), 180))
 
-
-def _dive(mavutil: Any, port: int) -> float:
-    deadline = time.monotonic() + 90
-    while True:
+def _dive(mavutil: Any, port: int) -> tuple[tuple[float, float], tuple[float, float]]:
+    """As a ground station (system 255): arm in MANUAL, stick down (z 150 of 0..1000) for 8 s.
+    ArduSub's (time since boot [s], relative altitude [m]) from GLOBAL_POSITION_INT when armed
+    and at the end."""
+    deadline = time.monotonic() + 60
+    while True:  # wait for ArduSub's MAVLink port (a link opened while it boots stays silent)
         try:
-            m = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255)
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
             break
         except OSError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(1)
-    m.wait_heartbeat(timeout=60)
-    for name, value in (("FS_PILOT_INPUT", 0), ("FS_GCS_ENABLE", 0), ("ARMING_CHECK", 0)):
+            assert time.monotonic() < deadline, "ArduSub's MAVLink port never opened"
+            time.sleep(0.5)
+    time.sleep(3.0)
+    m = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255)
+    assert m.wait_heartbeat(timeout=30) is not None, "no heartbeat from ArduSub"
+    deadline = time.monotonic() + 60
+    m.mav.request_data_stream_send(m.target_system, m.target_component, mavutil.mavlink.MAV_DATA_STREAM_ALL, 10, 1)
+    for name, value in (("ARMING_CHECK", 0), ("FS_PILOT_INPUT", 0), ("FS_GCS_ENABLE", 0)):
         m.mav.param_set_send(m.target_system, m.target_component, name.encode(), value,
                              mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
     m.set_mode(19)  # MANUAL
+    armed, beat = False, 0.0
+    alt: tuple[float, float] | None = None
+    start_alt: tuple[float, float] | None = None
+    down_until: float | None = None
     while time.monotonic() < deadline:
-        m.mav.command_long_send(m.target_system, m.target_component,
-                                mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-        hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=2)
-        if hb is not None and hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
+        now = time.monotonic()
+        if now - beat > 1.0:
+            m.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            beat = now
+            if not armed:
+                m.mav.command_long_send(m.target_system, m.target_component,
+                                        mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        m.mav.manual_control_send(m.target_system, 0, 0, 150 if armed else 500, 0, 0)
+        msg = m.recv_match(blocking=True, timeout=0.1)
+        while msg is not None:
+            kind = msg.get_type()
+            if kind == "HEARTBEAT" and msg.get_srcSystem() == m.target_system:
+                armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            elif kind == "GLOBAL_POSITION_INT":
+                alt = (msg.time_boot_ms / 1000.0, msg.relative_alt / 1000.0)
+            msg = m.recv_match(blocking=False)
+        if armed and alt is not None and start_alt is None:
+            start_alt, down_until = alt, now + 8.0
+        if down_until is not None and now > down_until:
             break
-    end = time.monotonic() + 10
-    alt = 0.0
-    while time.monotonic() < end:
-        m.mav.manual_control_send(m.target_system, 0, 0, 150, 0, 0)  # z 150 < 500: down
-        msg = m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=1)
-        if msg is not None:
-            alt = msg.relative_alt / 1000.0
-    return alt
+    m.close()
+    assert start_alt is not None and alt is not None, f"ArduSub never armed ({armed}) or sent its position ({alt})"
+    return start_alt, alt
 
 
 def test_the_truth_record_carries_the_pwm_per_servo_output(tmp_path: Path) -> None:
