@@ -85,8 +85,9 @@ def ray_available() -> str | None:
     return None
 
 
-def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
-    """Connect to Ray: a local instance on loopback when ``address`` is None, else that cluster."""
+def ray_init(address: str | None, num_cpus: int | None = None) -> bool:
+    """Connect to Ray: a local instance on loopback when ``address`` is None, else that cluster.
+    True when this call started or joined it (the caller shuts it down), False when Ray was up already."""
     why = ray_available()
     if why:
         raise RuntimeError(why)
@@ -99,7 +100,7 @@ def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
     from ray._private import ray_constants
 
     if ray.is_initialized():
-        return ray
+        return False
     if address is None:
         ray_constants.ENABLE_RAY_CLUSTER = False   # read when Ray picks the node's address
         ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
@@ -110,7 +111,13 @@ def ray_init(address: str | None, num_cpus: int | None = None) -> Any:
         ray.get([noop.options(num_cpus=1).remote() for _ in range(max(1, cpus))])
     else:
         ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-    return ray
+    return True
+
+
+def ray_shutdown() -> None:
+    import ray
+
+    ray.shutdown()
 
 
 def _noop() -> None:

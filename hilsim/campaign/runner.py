@@ -165,6 +165,7 @@ def run_campaign(path: Path | str, out: Path | None = None, workers: int | None 
             progress.stream.write(f"campaign {c.name}: a render task of case {case.id} failed: "
                                   f"{type(exc).__name__}: {exc}\n")
 
+    started_ray = False
     try:
         if ray is None:
             cpus = c.stack.cpus if c.stack else 1.0
@@ -174,9 +175,11 @@ def run_campaign(path: Path | str, out: Path | None = None, workers: int | None 
             executors.run_local(tasks, n, processes=c.kind == "render", on_done=on_done, on_error=on_error,
                                 on_abort=abort)
         else:
-            executors.ray_init(None if ray == "local" else ray, ray_cpus)
+            started_ray = executors.ray_init(None if ray == "local" else ray, ray_cpus)
             executors.run_ray(tasks, on_done, on_error)
     finally:
+        if started_ray:   # a Ray this campaign started (or joined) is left: its processes stop
+            executors.ray_shutdown()
         from hilsim.campaign.mission import cleanup_all
 
         cleanup_all()
