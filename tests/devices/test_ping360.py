@@ -30,10 +30,17 @@ DR = PERIOD * 25e-9 * C / 2         # [m] per sample
 def bridge(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ping360")
     text = (ROOT / "scenarios" / "water_tank" / "scenario.toml").read_text().split("\n[[devices]]")[0]
-    text = re.sub(r"(\[vehicle\]\nprofile = \"cyclops\"\nposition_m = )\[[^\]]*\]", rf"\1[{X0}, {Y0}, {Z0}]", text)
+    text = re.sub(r"(\[vehicle\]\nprofile = )\"cyclops\"(\nposition_m = )\[[^\]]*\]",
+                  rf'\1"neutral"\2[{X0}, {Y0}, {Z0}]', text)
+    # Cyclops made neutrally buoyant (W_w = 0): with no thrust the vehicle stays where the geometry
+    # below puts it, however long the sweeps take on a loaded machine
+    (tmp / "vehicles").mkdir()
+    cyclops = (ROOT / "devices" / "vehicles" / "cyclops.toml").read_text()
+    assert 'constant_force = { value = -2.5,' in cyclops
+    (tmp / "vehicles" / "neutral.toml").write_text(
+        cyclops.replace('constant_force = { value = -2.5,', 'constant_force = { value = 0.0,'))
     text += ('\n[[devices]]\nname = "ping360"\nprotocol = "ping360"\nsensor = "ping360"\nudp_port = 0\n')
     (tmp / "scenario.toml").write_text(text)
-    # the vertical thrusters hold nothing: Cyclops floats up slowly (W_w = -2.5 N; a few mm in a test)
     b = start_bridge(tmp, str(tmp / "scenario.toml"), "--status-interval", "0")
     yield b
     assert b.stop() == 0, b.log()[-2000:]
