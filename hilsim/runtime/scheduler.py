@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from hilsim.sim.vehicle import Current, Vehicle
 
 DEFAULT_PHYSICS_RATE = 200.0  # [Hz]
+MAX_STEP = 0.02               # [s] the longest physics step (late ticks are split into steps this long)
 ONE_SHOT = 1e12               # [s] the period of an event that runs once (it is removed when it fires)
 
 
@@ -308,18 +309,23 @@ class VehicleLoop:
         self.contacts.surface = bool(on)
 
     def physics_tick(self, t: float) -> None:
-        """Advance the state to time ``t`` [s]."""
-        state = self.state
-        dt = t - state.time
-        if dt <= 1e-12:
+        """Advance the state to time ``t`` [s], in steps of at most :data:`MAX_STEP` (a tick that
+        comes late on a loaded machine is integrated in several steps, never one long one that
+        the integrator or the contacts could not take)."""
+        dt_all = t - self.state.time
+        if dt_all <= 1e-12:
             return
+        n = max(1, math.ceil(dt_all / MAX_STEP - 1e-9))
         thrusters = self.thrusters
-        if thrusters is not None:
-            new = self.vehicle.step_with_thrusters(state, dt, thrusters, self.current)
-        else:
-            new = self.vehicle.step(state, dt, self.wrench, self.current)
-        new = self.contacts.step(state, new, dt)
-        self.state = new
+        for i in range(n):
+            state = self.state
+            dt = (t - state.time) / (n - i)
+            if thrusters is not None:
+                new = self.vehicle.step_with_thrusters(state, dt, thrusters, self.current)
+            else:
+                new = self.vehicle.step(state, dt, self.wrench, self.current)
+            self.state = self.contacts.step(state, new, dt)
+        new = self.state
         if self.tick_listeners:
             info = self.contacts.last
             for listener in self.tick_listeners:

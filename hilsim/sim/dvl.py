@@ -141,8 +141,12 @@ def beam_directions(profile: DvlProfile) -> F64:
 
 
 def figure_of_merit(covariance: F64) -> float:
-    """[m/s] square root of the largest eigenvalue of a (3, 3) velocity covariance [(m/s)^2]."""
-    return float(math.sqrt(max(0.0, float(np.linalg.eigvalsh(np.asarray(covariance, dtype=float))[-1]))))
+    """[m/s] square root of the largest eigenvalue of a (3, 3) velocity covariance [(m/s)^2]
+    (NaN for a covariance that is not finite: no figure of merit, not an exception)."""
+    cov = np.asarray(covariance, dtype=float)
+    if not np.all(np.isfinite(cov)):
+        return float("nan")
+    return float(math.sqrt(max(0.0, float(np.linalg.eigvalsh(cov)[-1]))))
 
 
 @dataclass(frozen=True)
