@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Final, Iterator, Protocol, TypeVar, Union
+from typing import Final, Generic, Iterator, Protocol, TypeVar, Union
 
 
 class NeedData(enum.Enum):
@@ -206,3 +206,51 @@ class LineFramer:
                 continue
             self.lines += 1
             return Line(raw)
+
+
+L = TypeVar("L")
+
+
+class LineDecoder(Generic[L]):
+    """A line protocol's decoder: a :class:`LineFramer` and :meth:`parse_line`, which turns one line
+    (terminator removed) into an event or a :class:`BadInput`. ``next_event`` gives those events
+    and the framer's :class:`Oversize`; ``good`` and ``bad`` count them. Subclasses set
+    ``MAX_LINE``, ``CR_ENDS_LINE`` (a lone CR ends a line) and ``SKIP_BLANK`` (lines of only
+    whitespace are skipped, not parsed)."""
+
+    MAX_LINE = 4096
+    CR_ENDS_LINE = False
+    SKIP_BLANK = False
+
+    def __init__(self, max_line: int | None = None) -> None:
+        self._lines = LineFramer(max_line or self.MAX_LINE, cr_ends_line=self.CR_ENDS_LINE)
+        self.good = 0
+        self.bad = 0
+
+    @property
+    def buffered_bytes(self) -> int:
+        return self._lines.buffered_bytes
+
+    def receive_data(self, data: bytes) -> None:
+        self._lines.receive_data(data)
+
+    def parse_line(self, line: bytes) -> Union[L, BadInput]:
+        raise NotImplementedError
+
+    def next_event(self) -> Union[L, BadInput, NeedData]:
+        while True:
+            ev = self._lines.next_event()
+            if ev is NEED_DATA:
+                return NEED_DATA
+            if isinstance(ev, Oversize):
+                self.bad += 1
+                return ev
+            assert isinstance(ev, Line)
+            if self.SKIP_BLANK and not ev.data.strip():
+                continue
+            out = self.parse_line(ev.data)
+            if isinstance(out, BadInput):
+                self.bad += 1
+            else:
+                self.good += 1
+            return out

@@ -33,7 +33,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Final, Mapping, Sequence, Union
 
-from hilsim.protocols.codec import NEED_DATA, BadFrame, LineFramer, NeedData, Oversize
+from hilsim.protocols.codec import BadFrame, LineDecoder, Oversize
 
 FORMAT: Final = "json_v3.3"
 PORT: Final = 16171
@@ -184,37 +184,19 @@ def parse_command(line: bytes) -> Command | BadCommand:
     return Command(name, obj.get("parameters"), obj)
 
 
-class CommandDecoder:
+class CommandDecoder(LineDecoder[Event]):
     """JSON command lines -> :class:`Command` / :class:`BadCommand` / ``Oversize`` (sans-I/O)."""
 
-    def __init__(self, max_line: int = MAX_LINE) -> None:
-        self._lines = LineFramer(max_line, cr_ends_line=False)
-        self.commands = 0
-        self.bad = 0
+    MAX_LINE = MAX_LINE
+    CR_ENDS_LINE = False
+    SKIP_BLANK = True
 
     @property
-    def buffered_bytes(self) -> int:
-        return self._lines.buffered_bytes
+    def commands(self) -> int:
+        return self.good
 
-    def receive_data(self, data: bytes) -> None:
-        self._lines.receive_data(data)
-
-    def next_event(self) -> Union[Event, NeedData]:
-        while True:
-            ev = self._lines.next_event()
-            if ev is NEED_DATA:
-                return NEED_DATA
-            if isinstance(ev, Oversize):
-                self.bad += 1
-                return ev
-            if not ev.data.strip():
-                continue
-            out = parse_command(ev.data)
-            if isinstance(out, BadCommand):
-                self.bad += 1
-            else:
-                self.commands += 1
-            return out
+    def parse_line(self, line: bytes) -> Event:
+        return parse_command(line)
 
 
 __all__ = ["BadCommand", "COMMANDS", "Command", "CommandDecoder", "DvlConfig", "FORMAT", "PORT", "Transducer",

@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Final, Sequence, Union
 
-from hilsim.protocols.codec import NEED_DATA, BadFrame, LineFramer, NeedData, Oversize
+from hilsim.protocols.codec import BadFrame, LineDecoder, Oversize
 from hilsim.protocols.dvl_json import DvlConfig
 
 VERSION: Final = "2.8.0"
@@ -180,34 +180,19 @@ def parse_wcs(options: Sequence[str]) -> dict[str, object] | str:
     return out
 
 
-class SerialCommandDecoder:
+class SerialCommandDecoder(LineDecoder[Event]):
     """DVL serial command lines -> events (sans-I/O); any of LF, CR LF, CR ends a line."""
 
-    def __init__(self, max_line: int = MAX_LINE) -> None:
-        self._lines = LineFramer(max_line, cr_ends_line=True)
-        self.commands = 0
-        self.bad = 0
+    MAX_LINE = MAX_LINE
+    CR_ENDS_LINE = True
+    SKIP_BLANK = False
 
     @property
-    def buffered_bytes(self) -> int:
-        return self._lines.buffered_bytes
+    def commands(self) -> int:
+        return self.good
 
-    def receive_data(self, data: bytes) -> None:
-        self._lines.receive_data(data)
-
-    def next_event(self) -> Union[Event, NeedData]:
-        ev = self._lines.next_event()
-        if ev is NEED_DATA:
-            return NEED_DATA
-        if isinstance(ev, Oversize):
-            self.bad += 1
-            return ev
-        out = parse_line(ev.data)
-        if isinstance(out, BadSerial):
-            self.bad += 1
-        else:
-            self.commands += 1
-        return out
+    def parse_line(self, line: bytes) -> Event:
+        return parse_line(line)
 
 
 __all__ = ["ACK", "BAD_CHECKSUM", "BadSerial", "COMMANDS", "MALFORMED", "NACK", "SerialCommand",

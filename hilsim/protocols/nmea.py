@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence, Union
 
-from hilsim.protocols.codec import NEED_DATA, BadFrame, LineFramer, NeedData, Oversize
+from hilsim.protocols.codec import BadFrame, LineDecoder, Oversize
 
 MAX_SENTENCE = 82          # characters, '$' to the line end included (NMEA 0183)
 KNOT = 1852.0 / 3600.0     # [m/s] one knot
@@ -195,36 +195,22 @@ def parse_sentence(line: bytes) -> Sentence | BadSentence:
     return Sentence(address[:2], address[2:], tuple(parts[1:]))
 
 
-class NmeaDecoder:
+class NmeaDecoder(LineDecoder[Event]):
     """NMEA 0183 lines -> :class:`Sentence` / :class:`BadSentence` / ``Oversize`` (sans-I/O).
 
     Lines longer than ``max_line`` bytes (default: a generous 2 x the 82-character limit) are
     ``Oversize``; memory is bounded by that plus the last chunk."""
 
-    def __init__(self, max_line: int = 2 * MAX_SENTENCE) -> None:
-        self._lines = LineFramer(max_line)
-        self.sentences = 0
-        self.bad = 0
+    MAX_LINE = 2 * MAX_SENTENCE
+    CR_ENDS_LINE = False
+    SKIP_BLANK = False
 
     @property
-    def buffered_bytes(self) -> int:
-        return self._lines.buffered_bytes
+    def sentences(self) -> int:
+        return self.good
 
-    def receive_data(self, data: bytes) -> None:
-        self._lines.receive_data(data)
-
-    def next_event(self) -> Union[Event, NeedData]:
-        ev = self._lines.next_event()
-        if ev is NEED_DATA or isinstance(ev, Oversize):
-            if isinstance(ev, Oversize):
-                self.bad += 1
-            return ev
-        out = parse_sentence(ev.data)
-        if isinstance(out, BadSentence):
-            self.bad += 1
-        else:
-            self.sentences += 1
-        return out
+    def parse_line(self, line: bytes) -> Event:
+        return parse_sentence(line)
 
 
 __all__ = ["BadSentence", "KNOT", "MAX_SENTENCE", "NmeaDecoder", "Sentence", "checksum", "format_lat",
