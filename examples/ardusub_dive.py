@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -41,16 +42,21 @@ class Pilot:
     """A ground station's side of ArduSub: heartbeats, modes, arming, stick input, telemetry."""
 
     def __init__(self, url: str, timeout: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                self.m = mavutil.mavlink_connection(url, source_system=255)
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(1.0)
-        self.m.wait_heartbeat(timeout=timeout)
+        if url.startswith("tcp:"):  # wait for ArduSub's port: a link opened while it boots stays silent
+            host, _, port = url[4:].rpartition(":")
+            deadline = time.monotonic() + timeout
+            while True:
+                try:
+                    socket.create_connection((host, int(port)), timeout=1.0).close()
+                    break
+                except OSError:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.5)
+            time.sleep(3.0)
+        self.m = mavutil.mavlink_connection(url, source_system=255)
+        if self.m.wait_heartbeat(timeout=timeout) is None:
+            raise RuntimeError(f"no heartbeat from ArduSub on {url}")
         self.depth = 0.0      # [m] positive down
         self.heading = 0.0    # [deg]
         self.armed = False
@@ -107,7 +113,8 @@ class Pilot:
 
 
 def turned(start: float, now: float, by: float) -> bool:
-    return ((now - start) % 360.0) >= by
+    """Whether the heading [deg] went clockwise from ``start`` by ``by`` or more (signed, -180..180)."""
+    return (now - start + 540.0) % 360.0 - 180.0 >= by
 
 
 def mission(p: Pilot, depth: float, side: float) -> None:
@@ -124,7 +131,7 @@ def mission(p: Pilot, depth: float, side: float) -> None:
     for leg in range(4):
         p.fly(side, x=500)
         start = p.heading
-        p.fly(20.0, until=lambda: turned(start, p.heading, 85.0), r=400)
+        p.fly(20.0, until=lambda: turned(start, p.heading, 80.0), r=200)
         p.fly(2.0)
         print(f"  leg {leg + 1}: depth {p.depth:.2f} m, heading {p.heading:.0f} deg")
     print("surfacing")

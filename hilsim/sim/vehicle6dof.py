@@ -28,7 +28,8 @@ origin is the centre of gravity (CG), so the rigid-body inertia is diagonal:
 - Kinematics: ``d(x, y, z)/dt = R(phi, theta, psi) (u, v, w)`` and the
   Z-Y-X Euler rates ``dphi/dt = p + (q sin phi + r cos phi) tan theta``,
   ``dtheta/dt = q cos phi - r sin phi``, ``dpsi/dt = (q sin phi + r cos phi) / cos theta``
-  (singular at pitch +-90 deg, which an ROV with its CB above its CG does not reach).
+  (singular at pitch +-90 deg: the rates are bounded there, and a state pitched past
+  it is written back as the same rotation with |pitch| <= 90 deg).
 
 Integrator: classical RK4 on the 12 states in Python floats (as the 4-DOF
 model: numpy on vectors this small costs more than the arithmetic), the wrench
@@ -96,6 +97,7 @@ class Current(Protocol):
 GRAVITY = 9.80665  # [m/s^2] standard gravity (what ArduPilot and the IMU models use)
 _TWO_PI = 2.0 * math.pi
 _PI = math.pi
+_HALF_PI = 0.5 * math.pi
 _sin, _cos, _tan = math.sin, math.cos, math.tan
 _new = object.__new__
 _STILL = (0.0, 0.0, 0.0)  # still water (compared by identity)
@@ -241,15 +243,19 @@ class Vehicle6DOF:
         v1 = v0 + k6 * (a7 + 2.0 * (b7 + c7_) + d7)
         w1 = w0 + k6 * (a8 + 2.0 * (b8 + c8_) + d8)
         roll = f0 + k6 * (a3 + 2.0 * (b3 + c3_) + d3)
+        pitch = t0 + k6 * (a4 + 2.0 * (b4 + c4_) + d4)
         yaw = s0 + k6 * (a5 + 2.0 * (b5 + c5_) + d5)
+        if pitch > _HALF_PI or pitch < -_HALF_PI:  # over the top: the same rotation with |pitch| <= 90 deg
+            pitch = (_PI if pitch > 0 else -_PI) - pitch
+            roll += _PI
+            yaw += _PI
         inv = 1.0 / dt
         out = _new(VehicleState)
         od = out.__dict__
         od["time"] = time0 + dt
         od["_flat"] = (x0 + k6 * (a0 + 2.0 * (b0 + c0_) + d0), y0 + k6 * (a1 + 2.0 * (b1 + c1_) + d1),
                        z0 + k6 * (a2 + 2.0 * (b2 + c2_) + d2),
-                       (roll + _PI) % _TWO_PI - _PI, t0 + k6 * (a4 + 2.0 * (b4 + c4_) + d4),
-                       (yaw + _PI) % _TWO_PI - _PI,
+                       (roll + _PI) % _TWO_PI - _PI, pitch, (yaw + _PI) % _TWO_PI - _PI,
                        u1, v1, w1,
                        p0 + k6 * (a9 + 2.0 * (b9 + c9_) + d9), q0 + k6 * (a10 + 2.0 * (b10 + c10_) + d10),
                        r0 + k6 * (a11 + 2.0 * (b11 + c11_) + d11),
@@ -304,6 +310,8 @@ def _make_deriv(mass: tuple[float, ...], lin: tuple[float, ...], quad: tuple[flo
         dq = (my - bzb * r20 + bxb * r22 - (kq + qq * abs(q)) * q - ipr * r * p - auw * wr * ur) * jq
         dr = (mz - bxb * r21 + byb * r20 - (kr + qr * abs(r)) * r - iqp * p * q - avu * ur * vr) * jr
         qs_rc = q * sf + r * cf
+        if -1e-9 < ct < 1e-9:  # pitch at +-90 deg: the Euler rates are singular there; step past it
+            ct = 1e-9
         return (r00 * u + r01 * v + r02 * w, r10 * u + r11 * v + r12 * w, r20 * u + r21 * v + r22 * w,
                 p + qs_rc * st / ct, q * cf - r * sf, qs_rc / ct,
                 du, dv, dw, dp, dq, dr)

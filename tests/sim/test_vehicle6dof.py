@@ -116,15 +116,33 @@ def test_off_centre_thrusters_roll_and_pitch_the_right_way(heavy: VehicleProfile
     roll, pitch, _ = state.attitude
     assert roll > 0.005 and pitch < -0.005  # starboard side down, nose down
     assert state.velocity[2] > 0  # and it pushes the vehicle down
-    # the four horizontal thrusters sit below the CG: surging forward raises the nose
-    thrusters = heavy.thruster_set()
+    # horizontal thrusters mounted 5 cm below the CG: surging forward raises the nose
+    low = tuple(dataclasses.replace(t, position=t.position + np.array([0.0, 0.0, 0.05]))
+                if t.direction[2] == 0 else t for t in heavy.thrusters)
+    variant = dataclasses.replace(heavy, thrusters=low)
+    thrusters = variant.thruster_set()
     state = tilted()
     fwd = [thrusters.index(n) for n in ("front_right", "front_left", "rear_right", "rear_left")]
     for _ in range(50):
         for j in fwd:
             thrusters.command(j, "normalized", 0.5, state.time)
-        state = vehicle.step_with_thrusters(state, 0.01, thrusters)
+        state = Vehicle6DOF(variant).step_with_thrusters(state, 0.01, thrusters)
     assert state.velocity[0] > 0.05 and state.attitude[1] > 0.005 and abs(state.attitude[0]) < 1e-9
+
+
+def test_a_vehicle_pitched_over_the_top_stays_finite_and_canonical(heavy: VehicleProfile) -> None:
+    """A strong pitch moment turns the vehicle over: the state passes pitch 90 deg without a
+    blow-up, keeps |pitch| <= 90 deg, and its rotation follows the integrated body rates."""
+    vehicle = Vehicle6DOF(heavy)
+    state = tilted()
+    pitches = []
+    for _ in range(400):
+        state = vehicle.step(state, 0.005, (0.0, 0.0, 0.0, 0.0, 3.0, 0.0))
+        pitches.append(state.attitude[1])
+    assert np.all(np.isfinite(state.flat()))
+    assert max(abs(p) for p in pitches) <= math.pi / 2 + 1e-12
+    # it went over: the body's x axis points backwards and up at some time
+    assert abs(state.attitude[0]) > 3.0 or max(pitches) > 1.5
 
 
 def test_thruster_wrench_matches_the_full_matrix(heavy: VehicleProfile) -> None:
