@@ -70,7 +70,6 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
     world = scenario.build_world()
     sonars: dict[str, ImagingSonar] = {}
     cameras: dict[tuple[str, int], Any] = {}
-    placed: dict[str, Any] = {}  # object name -> its current placement (4, 4)
     conn.send(("ready", os.getpid()))
     while True:
         try:
@@ -111,18 +110,7 @@ def _worker_main(conn: Connection, scenario_path: str, seed: int) -> None:
                 conn.send((req_id, True, float(hits.t[0])))
             elif op == "move":  # a scripted object motion (the timeline)
                 name, position, rpy = args
-                parts = [o for o in world.objects if o.name == name or o.name.startswith(name + "/")]
-                if not parts:
-                    raise KeyError(f"no object {name!r}")
-                old = placed.get(name)
-                if old is None:
-                    old = scenario.object_placement(name).matrix()
-                new = Pose.from_xyz_rpy(position, rpy).matrix()
-                delta = new @ np.linalg.inv(old)
-                for o in parts:
-                    o.mesh.apply_transform(delta)
-                placed[name] = new
-                world.rebuild()
+                world.place(name, Pose.from_xyz_rpy(position, rpy).matrix(), scenario.object_placement(name).matrix())
                 conn.send((req_id, True, None))
             elif op == "crash":  # for tests of the restart path
                 os._exit(3)
