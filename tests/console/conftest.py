@@ -24,7 +24,7 @@ def _drain(sock: socket.socket, stop: threading.Event) -> None:
             return
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")  # stopped when tests/console ends: its bridge holds the vendor ports
 def console_bridge(tmp_path_factory):
     from tests.runtime import abuse_clients as ac
 
