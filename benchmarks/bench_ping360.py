@@ -32,7 +32,7 @@ def ddf_reader(address: str, stop: threading.Event, counter: list[int]) -> None:
         try:
             recv_exact(s, FRAME_HDR + 96 * 512)
             counter[0] += 1
-        except OSError:
+        except (OSError, EOFError):  # the bridge stopped
             break
     s.close()
 
