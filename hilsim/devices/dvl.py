@@ -49,12 +49,7 @@ class DvlDevice(TcpServerDevice):
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        try:
-            self.mount = ctx.scenario.sensor(str(self.options["sensor"]))
-        except KeyError as exc:
-            raise self.option_error("sensor", str(exc.args[0])) from None
-        if self.mount.kind != "dvl":
-            raise self.option_error("sensor", f"sensor {self.mount.name!r} is a {self.mount.kind}, not a dvl")
+        self.mount = self.sensor_mount("dvl")
         if not isinstance(self.options["serial"], bool):
             raise self.option_error("serial", "serial must be true or false")
         self.path = self.option_pty_path("path", name) if self.options["serial"] else None

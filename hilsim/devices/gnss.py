@@ -43,12 +43,7 @@ class GnssDevice(PtyDevice):
         from hilsim.sim.gnss import Gnss, load_gnss_profile
         from hilsim.sim.rig import profile_path
 
-        try:
-            self.mount = ctx.scenario.sensor(str(self.options["sensor"]))
-        except KeyError as exc:
-            raise self.option_error("sensor", str(exc.args[0])) from None
-        if self.mount.kind != "gnss":
-            raise self.option_error("sensor", f"sensor {self.mount.name!r} is a {self.mount.kind}, not a gnss")
+        self.mount = self.sensor_mount("gnss")
         profile = load_gnss_profile(profile_path(ctx.scenario, self.mount))
         if self.options["rate"] is not None:
             profile = dataclasses.replace(profile, rate=self.option_number("rate", 1.0, 10.0))

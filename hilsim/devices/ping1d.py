@@ -44,13 +44,7 @@ class Ping1dDevice(PtyDevice):
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
         super().__init__(name, options, ctx)
-        try:
-            self.mount = ctx.scenario.sensor(str(self.options["sensor"]))
-        except KeyError as exc:
-            raise self.option_error("sensor", str(exc.args[0])) from None
-        if self.mount.kind != "echosounder":
-            raise self.option_error("sensor", f"sensor {self.mount.name!r} is a {self.mount.kind}, "
-                                    "not an echosounder")
+        self.mount = self.sensor_mount("echosounder")
         self.device_id = self.option_int("device_id", 0, 254)
         self.decoder = pp.PingDecoder()
         self.sim: Any = None
