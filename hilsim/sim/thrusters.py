@@ -46,6 +46,7 @@ from hilsim.sim.geometry import F64
 
 COMMAND_KINDS = ("normalized", "duty", "rpm", "erpm", "current")
 _RPM = 2.0 * math.pi / 60.0  # [rad/s] per [rev/min]
+_ZERO6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _THERMAL_STEP = 0.05  # [s] the winding temperature is advanced at most this often
 _EVENT_MARGIN = 1.0 + 1e-12  # re-anchor a hair early rather than a tick late
 _F_FLOOR = 1e-30  # re-anchor a group before its decay factor underflows
@@ -314,9 +315,8 @@ class ThrusterSet:
                 b = [(fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) for j in range(len(xp) - 1)]
                 pieces[id(p)] = (xp, [fp[j] - b[j] * xp[j] for j in range(len(b))], b)
         self._pieces = [pieces[id(p)] for p in profiles]
-        # (Fx, Fy, Fz, Mz) per unit thrust: the columns the 4-DOF dynamics use
-        self._cols = [tuple(float(self.matrix[r, i]) for r in (0, 1, 2, 5)) for i in range(n)]
-        self._cols_xy = [(float(self.matrix[3, i]), float(self.matrix[4, i])) for i in range(n)]  # Mx, My
+        # (Fx, Fy, Fz, Mx, My, Mz) per unit thrust: the allocation matrix's columns
+        self._cols = [tuple(float(self.matrix[r, i]) for r in range(6)) for i in range(n)]
         taus = sorted({p.time_constant for p in profiles})
         self._group = [taus.index(p.time_constant) for p in profiles]
         self._members = [[i for i in range(n) if self._group[i] == g] for g in range(len(taus))]
@@ -330,8 +330,8 @@ class ThrusterSet:
         self._single = len(taus) == 1
         self._f = [1.0] * len(taus)          # decay factor F of each group
         self._fevent = [0.0] * len(taus)     # re-anchor the group once F <= this
-        self._w0 = (0.0, 0.0, 0.0, 0.0)      # (Fx, Fy, Fz, Mz) = w0 + sum_g w1[g] F[g]
-        self._w1 = [(0.0, 0.0, 0.0, 0.0)] * len(taus)
+        self._w0 = _ZERO6                    # wrench (Fx, Fy, Fz, Mx, My, Mz) = w0 + sum_g w1[g] F[g]
+        self._w1 = [_ZERO6] * len(taus)
         self._dirty = True
         self._rebuild()
         self.max_thrust = np.array([float(p.thrust(min(1.0, self.supply_voltage / p.nominal_voltage)))
@@ -429,33 +429,40 @@ class ThrusterSet:
 
     def roll_pitch_moments(self) -> tuple[float, float]:
         """(Mx, My) [N m] of the thrusts at the current speeds: the two rows of the wrench
-        that :meth:`tick` leaves out (a 6-DOF vehicle calls this, then :meth:`tick`)."""
-        fs, g, on, slope = self._f, self._group, self._on, self._slope
-        mx = my = 0.0
-        for i, (cx, cy) in enumerate(self._cols_xy):
-            t = on[i] + slope[i] * fs[g[i]]
-            mx += cx * t
-            my += cy * t
+        that :meth:`tick` leaves out (:meth:`tick6` gives all six)."""
+        mx, my = self._w0[3], self._w0[4]
+        for w1, f in zip(self._w1, self._f):
+            mx += w1[3] * f
+            my += w1[4] * f
         return mx, my
 
     def tick(self, dt: float, now: float) -> tuple[float, float, float, float]:
-        """One physics tick: the wrench's (Fx, Fy, Fz [N], Mz [N m]) at the current
-        speeds (what :meth:`wrench` gives, to rounding), then :meth:`advance`."""
+        """One physics tick of a 4-DOF vehicle: the wrench's (Fx, Fy, Fz [N], Mz [N m])
+        at the current speeds (what :meth:`wrench` gives, to rounding), then :meth:`advance`."""
+        fx, fy, fz, _mx, _my, mz = self.tick6(dt, now)
+        return fx, fy, fz, mz
+
+    def tick6(self, dt: float, now: float) -> tuple[float, float, float, float, float, float]:
+        """One physics tick: the whole wrench (Fx, Fy, Fz [N], Mx, My, Mz [N m]) at the
+        current speeds (what :meth:`wrench` gives, to rounding), then :meth:`advance`."""
         w0 = self._w0
         if not self._single:
-            fx, fy, fz, mz = w0
+            fx, fy, fz, mx, my, mz = w0
             for w1, f in zip(self._w1, self._f):
                 fx += w1[0] * f
                 fy += w1[1] * f
                 fz += w1[2] * f
-                mz += w1[3] * f
+                mx += w1[3] * f
+                my += w1[4] * f
+                mz += w1[5] * f
             self.advance(dt, now)
-            return fx, fy, fz, mz
+            return fx, fy, fz, mx, my, mz
         # one group: advance() written out
         fs = self._f
         f = fs[0]
         w1 = self._w1[0]
-        out = (w0[0] + w1[0] * f, w0[1] + w1[1] * f, w0[2] + w1[2] * f, w0[3] + w1[3] * f)
+        out = (w0[0] + w1[0] * f, w0[1] + w1[1] * f, w0[2] + w1[2] * f,
+               w0[3] + w1[3] * f, w0[4] + w1[4] * f, w0[5] + w1[5] * f)
         self._now = now
         if now > self._expiry:
             self._watchdog(now)
@@ -514,16 +521,16 @@ class ThrusterSet:
                     stale[i] = True
                     on[i] = slope[i] = 0.0
             fs[:] = [1.0] * len(fs)
-            self._w0 = (0.0, 0.0, 0.0, 0.0)
-            self._w1 = [(0.0, 0.0, 0.0, 0.0)] * len(fs)
+            self._w0 = _ZERO6
+            self._w1 = [_ZERO6] * len(fs)
             self._updates = 0
             self._dirty = True
-        w0x, w0y, w0z, w0n = self._w0
+        w0x, w0y, w0z, w0k, w0m, w0n = self._w0
         for g, members in enumerate(self._members):
             f = fs[g]
             if f > fevent[g] and not self._dirty:
                 continue
-            w1x, w1y, w1z, w1n = self._w1[g]
+            w1x, w1y, w1z, w1k, w1m, w1n = self._w1[g]
             due = _F_FLOOR
             for i in members:
                 if not stale[i] and fe[i] < f:
@@ -546,14 +553,18 @@ class ThrusterSet:
                 o, sl = a[j] + b[j] * t, b[j] * d
                 do, dsl = o - on[i], sl - slope[i]
                 on[i], slope[i] = o, sl
-                cx, cy, cz, cn = cols[i]
+                cx, cy, cz, ck, cm, cn = cols[i]
                 w0x += cx * do
                 w0y += cy * do
                 w0z += cz * do
+                w0k += ck * do
+                w0m += cm * do
                 w0n += cn * do
                 w1x += cx * dsl
                 w1y += cy * dsl
                 w1z += cz * dsl
+                w1k += ck * dsl
+                w1m += cm * dsl
                 w1n += cn * dsl
                 # the F at which the speed leaves its piece (or stops in the dead band)
                 e = 0.0
@@ -570,13 +581,13 @@ class ThrusterSet:
                 fe[i] = e
                 if e > due:
                     due = e
-            self._w1[g] = (w1x, w1y, w1z, w1n)
+            self._w1[g] = (w1x, w1y, w1z, w1k, w1m, w1n)
             fevent[g] = due
-        self._w0 = (w0x, w0y, w0z, w0n)
+        self._w0 = (w0x, w0y, w0z, w0k, w0m, w0n)
         if not any(slope):  # every rotor at its target: W1 is exactly zero, not a residue
-            self._w1 = [(0.0, 0.0, 0.0, 0.0)] * len(fs)
+            self._w1 = [_ZERO6] * len(fs)
             if not any(on):  # and every thrust zero (all stopped): so is W0
-                self._w0 = (0.0, 0.0, 0.0, 0.0)
+                self._w0 = _ZERO6
         self._dirty = False
 
     def _watchdog(self, now: float) -> None:

@@ -388,7 +388,7 @@ class Vehicle:
         ``dt`` [s]; the rotors are then advanced to the step's end (mutates ``thrusters``)."""
         if not dt > 0:
             raise ValueError(f"dt must be > 0, got {dt}")
-        fx, fy, fz, mz = thrusters.tick(dt, state.time + dt)
+        fx, fy, fz, _mx, _my, mz = thrusters.tick6(dt, state.time + dt)  # a 4-DOF body: roll and pitch held
         return self._step(state, dt, fx, fy, fz, mz, current)
 
     def _step(self, state: VehicleState, dt: float, fx: float, fy: float, fz: float, mz: float,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -145,14 +146,27 @@ def test_a_vehicle_pitched_over_the_top_stays_finite_and_canonical(heavy: Vehicl
     assert abs(state.attitude[0]) > 3.0 or max(pitches) > 1.5
 
 
-def test_thruster_wrench_matches_the_full_matrix(heavy: VehicleProfile) -> None:
-    thrusters = heavy.thruster_set()
-    thrusters.command_all("normalized", [0.3, -0.2, 0.5, 0.1, 0.4, -0.6, 0.2, 0.7], 0.0)
-    thrusters.advance(0.03, 0.03)
-    full = thrusters.wrench()
-    mx, my = thrusters.roll_pitch_moments()
-    fx, fy, fz, mz = thrusters.tick(0.01, 0.04)
-    np.testing.assert_allclose([fx, fy, fz, mx, my, mz], full, atol=1e-9)
+@pytest.mark.parametrize("two_lags", [False, True])
+def test_thruster_wrench_matches_the_full_matrix(heavy: VehicleProfile, two_lags: bool) -> None:
+    """The wrench the 6-DOF step gets (tick6, and roll_pitch_moments) is the allocation
+    matrix times the thrusts, while the rotors spin up and down (one or two time constants)."""
+    units = heavy.thrusters
+    if two_lags:
+        slow = dataclasses.replace(units[0].profile, time_constant=0.2)
+        units = tuple(dataclasses.replace(u, profile=slow) if i % 2 else u for i, u in enumerate(units))
+    thrusters = dataclasses.replace(heavy, thrusters=units).thruster_set()
+    now, biggest = 0.0, np.zeros(2)
+    for cmds in ([0.3, -0.2, 0.5, 0.1, 0.4, -0.6, 0.2, 0.7], [-0.5, 0.6, 0.0, 0.9, -0.3, 0.1, -0.8, 0.2]):
+        thrusters.command_all("normalized", cmds, now)
+        for _ in range(12):
+            full = thrusters.wrench()
+            mx, my = thrusters.roll_pitch_moments()
+            got = thrusters.tick6(0.01, now + 0.01)
+            now += 0.01
+            np.testing.assert_allclose(got, full, atol=1e-9)
+            np.testing.assert_allclose([mx, my], full[3:5], atol=1e-9)
+            biggest = np.maximum(biggest, np.abs(full[3:5]))
+    assert biggest.min() > 0.5, biggest  # roll and pitch moments really exercised [N m]
 
 
 def energy(profile: VehicleProfile, s: VehicleState) -> float:
@@ -266,3 +280,104 @@ def test_a_uniform_current_carries_the_vehicle_along(heavy: VehicleProfile) -> N
     assert ned[:2] == pytest.approx([0.2, -0.1], abs=1.5 * sway.mass / (sway.quadratic_damping * 30.0))
     assert ned[2] == pytest.approx(vehicle.steady_speed("heave", 0.0), rel=0.02)
     assert abs(state.attitude[0]) < 0.01 and abs(state.attitude[1]) < 0.01  # Munk moments tilt it a little
+
+
+def reference_rhs(profile: VehicleProfile, current: "Current | None", wrench: np.ndarray):  # type: ignore[no-untyped-def]
+    """The module doc's equations in matrix form (numpy cross products, scipy's rotation),
+    written apart from the kernel's expanded scalar arithmetic: the right-hand side of the
+    12 states for solve_ivp."""
+    from scipy.spatial.transform import Rotation
+
+    hs = profile.hydrostatics
+    assert hs is not None and profile.rigid_mass is not None
+    m = profile.rigid_mass
+    masses = np.array([profile.params[d].mass for d in profile.dofs])
+    lin = np.array([profile.params[d].linear_damping for d in profile.dofs])
+    quad = np.array([profile.params[d].quadratic_damping for d in profile.dofs])
+    added = np.diag(masses[:3] - m)
+    inertia = np.diag(masses[3:])
+    r_b = np.array(hs.centre_of_buoyancy)
+
+    def rhs(t: float, x: np.ndarray) -> np.ndarray:
+        phi, theta, psi = x[3:6]
+        v, omega = x[6:9], x[9:12]
+        rot = Rotation.from_euler("ZYX", [psi, theta, phi]).as_matrix()  # body -> NED
+        c_ned = np.zeros(3) if current is None else np.array(current.velocity(x[2], t))
+        v_r = v - rot.T @ c_ned
+        g_b = rot.T @ np.array([0.0, 0.0, 1.0])
+        p1 = m * v + added @ v_r
+        coriolis = np.concatenate([np.cross(omega, p1), np.cross(omega, inertia @ omega) + np.cross(v_r, added @ v_r)])
+        nu_r = np.concatenate([v_r, omega])
+        damping = (lin + quad * np.abs(nu_r)) * nu_r
+        restoring = np.concatenate([-(hs.weight - hs.buoyancy) * g_b, hs.buoyancy * np.cross(r_b, g_b)])
+        nu_dot = (wrench - coriolis - damping - restoring) / masses
+        euler_rates = np.array([[1.0, math.sin(phi) * math.tan(theta), math.cos(phi) * math.tan(theta)],
+                                [0.0, math.cos(phi), -math.sin(phi)],
+                                [0.0, math.sin(phi) / math.cos(theta), math.cos(phi) / math.cos(theta)]]) @ omega
+        return np.concatenate([rot @ v, euler_rates, nu_dot])
+
+    return rhs
+
+
+@pytest.mark.parametrize("water", ["still", "uniform", "over depth and time"])
+def test_the_kernel_integrates_the_documented_equations(heavy: VehicleProfile, water: str) -> None:
+    """A manoeuvre on every DOF (a wrench with all six components, a tilted, moving start),
+    RK4 at 10 ms against solve_ivp at 1e-11 on the matrix form of the equations, with the
+    current at each stage's depth and time (hilsim.sim.vehicle.Current's own interpolation)."""
+    from scipy.integrate import solve_ivp
+
+    from hilsim.sim.vehicle import Current
+
+    current = {"still": None, "uniform": Current.constant((0.3, -0.2, 0.05)),
+               "over depth and time": Current((((0.1, 0.0, 0.0), (0.4, 0.2, 0.0)),
+                                               ((-0.2, 0.3, 0.02), (0.0, -0.1, 0.0))),
+                                              times=(0.5, 2.5), depths=(4.9, 5.6))}[water]
+    wrench = np.array([30.0, -12.0, 18.0, 2.5, -3.0, 4.0])
+    start = VehicleState(position=np.array([1.0, -2.0, 5.0]), attitude=np.array([0.2, -0.15, 2.9]),
+                         velocity=np.array([0.3, -0.1, 0.05]), angular_velocity=np.array([0.1, -0.2, 0.3]))
+    vehicle, state, dt, seconds = Vehicle6DOF(heavy), start, 0.01, 3.0
+    for _ in range(int(round(seconds / dt))):
+        state = vehicle.step(state, dt, wrench, current)
+    x0 = np.array(start.flat()[:12])
+    ref = solve_ivp(reference_rhs(heavy, current, wrench), (0.0, seconds), x0, method="DOP853",
+                    rtol=1e-11, atol=1e-12).y[:, -1]
+    got = np.array(state.flat()[:12])
+    wrap = (got[3:6] - ref[3:6] + math.pi) % (2 * math.pi) - math.pi  # yaw crossed +-pi
+    assert abs(state.time - seconds) < 1e-9
+    assert np.abs(got[:3] - ref[:3]).max() < 1e-6  # [m]
+    assert np.abs(wrap).max() < 1e-6  # [rad]
+    assert np.abs(got[6:] - ref[6:]).max() < 1e-6  # [m/s, rad/s]
+    assert np.abs(got[:3] - x0[:3]).max() > 0.5 and abs(ref[5] - x0[5]) > 0.3  # it really moved and turned
+
+
+def test_the_kernel_is_compiled_and_cpython_runs_the_same_source() -> None:
+    """numba compiles the step (the benchmark's figure depends on it); with HILSIM_JIT=0
+    CPython runs the same functions and gets the same numbers to rounding."""
+    import json
+    import subprocess
+    import sys
+
+    from hilsim.sim import vehicle6dof_kernel
+
+    assert vehicle6dof_kernel.COMPILED, vehicle6dof_kernel.WHY_NOT_COMPILED
+    code = """if True:
+        import json, sys
+        import numpy as np
+        from hilsim.sim import vehicle6dof_kernel
+        from hilsim.sim.state import VehicleState
+        from hilsim.sim.vehicle import Current, Vehicle, load_vehicle_profile
+        vehicle = Vehicle(load_vehicle_profile(sys.argv[1]))
+        current = Current.over_depth((4.0, 6.0), ((0.2, 0.0, 0.0), (-0.1, 0.3, 0.0)))
+        state = VehicleState(position=np.array([0.0, 0.0, 5.0]), attitude=np.array([0.1, 0.2, -3.0]))
+        for k in range(400):
+            state = vehicle.step(state, 0.005, (20.0, 5.0, -8.0, 1.0, -2.0, 3.0), current if k % 2 else None)
+        print(json.dumps([vehicle6dof_kernel.COMPILED, vehicle6dof_kernel.WHY_NOT_COMPILED, state.flat()]))
+    """
+    runs = {}
+    for jit in ("1", "0"):
+        env = {**os.environ, "HILSIM_JIT": jit}
+        out = subprocess.run([sys.executable, "-c", code, str(HEAVY)], env=env, capture_output=True, text=True,
+                             timeout=120, check=True, cwd=ROOT)
+        runs[jit] = json.loads(out.stdout)
+    assert runs["1"][:2] == [True, ""] and runs["0"][:2] == [False, "HILSIM_JIT=0"]
+    np.testing.assert_allclose(runs["0"][2], runs["1"][2], rtol=1e-12, atol=1e-12)
