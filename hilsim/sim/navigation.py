@@ -254,6 +254,23 @@ class Imu(Sensor[ImuReading]):
     arm). magnetic_field (3,) [T] NED is the Earth's field (its east part sets
     the declination the reported yaw is measured from); gravity [m/s^2];
     temperature [K] of the housing.
+
+    The accelerometer integrates over its output period, as a MEMS IMU's
+    filter does: the body acceleration it reports is the mean over the
+    physics steps since its previous sample, ``(v_now - v_prev) / (t_now - t_prev)``
+    of the body velocity (each step's ``state.acceleration`` is that step's mean
+    ``dv/dt``, so this is their time-weighted mean, at no cost per step), plus
+    ``omega x v`` (mean of the two samples') and minus gravity at the current
+    attitude. An impact that stops the vehicle within one physics tick shows
+    as ``dv / period`` in exactly one sample, whatever the phase of the sampling
+    grid, and the samples times their periods add up to the true velocity change.
+    The first sample, a sample at the same time as the previous one, or one
+    earlier than it (a state from another run) reports ``state.acceleration``
+    (the last step's). A velocity the runtime sets outside the physics (a
+    timeline ``teleport``: the vehicle at rest elsewhere) shows, like any
+    velocity change, in the next sample. The gyro reports the state's rate
+    as sampled: it is a state, not a derivative (contacts exert no torque, so
+    it has no one-tick steps to miss).
     """
 
     def __init__(self, profile: ImuProfile, seed: int = 0, name: str = "imu",
@@ -269,15 +286,30 @@ class Imu(Sensor[ImuReading]):
         self.accel_bias_value = draw(profile.accel_bias, 3)
         self.gyro_bias_value = draw(profile.gyro_bias, 3)
         self.angle_bias_value = np.append(draw(profile.angle_bias, 2), draw(profile.heading_bias, 1))
+        # the previous sample: time [s], body velocity (3,) [m/s], omega x v (3,) [m/s^2]
+        self._prev: tuple[float, F64, F64] | None = None
+
+    def body_acceleration(self, state: VehicleState) -> F64:
+        """(3,) [m/s^2] the body origin's acceleration in body axes, ``dv/dt + omega x v``,
+        averaged since the previous call (see the class); remembers ``state`` for the next."""
+        omega = np.asarray(state.angular_velocity, dtype=float)
+        velocity = np.array(state.velocity, dtype=float)
+        coriolis = np.cross(omega, velocity)
+        prev, t = self._prev, state.time
+        if prev is not None and t - prev[0] > 1e-9:
+            accel = (velocity - prev[1]) / (t - prev[0]) + 0.5 * (coriolis + prev[2])
+        else:
+            accel = np.asarray(state.acceleration, dtype=float) + coriolis
+        self._prev = (t, velocity, coriolis)  # also when time went back: start again from here
+        return accel
 
     def sample(self, state: VehicleState) -> ImuReading:
         p = self.profile
         n = self.rng.standard_normal(13)
         rot = rpy_to_matrix(*state.attitude)
         omega = np.asarray(state.angular_velocity, dtype=float)
-        # acceleration of the body origin in body axes: dv/dt + omega x v, minus gravity
-        accel = np.asarray(state.acceleration, dtype=float) + np.cross(omega, state.velocity)
-        force = accel - rot.T @ np.array([0.0, 0.0, self.gravity])
+        # acceleration of the body origin in body axes (mean over the period), minus gravity
+        force = self.body_acceleration(state) - rot.T @ np.array([0.0, 0.0, self.gravity])
         force = np.clip(force + self.accel_bias_value + p.accel_noise * n[0:3], -p.accel_range, p.accel_range)
         gyro = np.clip(omega + self.gyro_bias_value + p.gyro_noise * n[3:6], -p.gyro_range, p.gyro_range)
         att = np.asarray(state.attitude, dtype=float) + self.angle_bias_value

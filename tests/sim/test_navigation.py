@@ -150,3 +150,116 @@ def test_bad_temperature_unit_is_refused(tmp_path: Path) -> None:
     bad.write_text(text)
     with pytest.raises(ConfigError, match="temperature difference"):
         load_pressure_profile(bad)
+
+
+# -- the accelerometer integrates over its output period ------------------------------------
+
+def quiet_imu(rate: float, offset: float = 0.0) -> Imu:
+    """A noise-free, bias-free HWT905 at ``rate`` [Hz], sampling grid at ``offset`` [s]."""
+    prof = load_imu_profile(HWT905)
+    zero = {k: 0.0 for k in prof.__dict__ if k.endswith(("_noise", "_bias"))}
+    return Imu(type(prof)(**{**prof.__dict__, **zero, "rate": rate}), offset=offset)
+
+
+PHYSICS = 200.0  # [Hz]
+
+
+@pytest.mark.parametrize("imu_rate", [100.0, 50.0])
+def test_a_one_tick_velocity_change_shows_in_exactly_one_sample_at_every_phase(imu_rate: float) -> None:
+    """Physics at 200 Hz; the body velocity drops from 0.5 m/s to 0 within tick k (its state's
+    acceleration is -0.5 m/s / 5 ms there, 0 elsewhere). Whatever the phase of tick k against
+    the IMU's grid, one sample reads -0.5 m/s / period, the others 0, and the samples times the
+    period add up to -0.5 m/s. (Reading the last step's acceleration only, the IMU at 100 Hz
+    missed it at every other phase.)"""
+    dv, dt = -0.5, 1.0 / PHYSICS
+    every = int(PHYSICS / imu_rate)
+    for k in range(20, 20 + 2 * every):  # every phase of the impact against the sampling grid, twice
+        imu = quiet_imu(imu_rate)
+        seen = []
+        for i in range(60):
+            t = i * dt
+            u = 0.5 if i < k else 0.0
+            a = dv / dt if i == k else 0.0
+            state = VehicleState(time=t, velocity=np.array([u, 0.0, 0.0]), acceleration=np.array([a, 0.0, 0.0]))
+            if i % every == 0:
+                seen.append(imu.sample(state).specific_force)
+        f = np.array(seen)
+        period = 1.0 / imu_rate
+        hit = np.flatnonzero(np.abs(f[:, 0]) > 1e-9)
+        assert len(hit) == 1, (k, f[:, 0])
+        assert f[hit[0], 0] == pytest.approx(dv / period, rel=1e-12)
+        assert hit[0] == -(-k // every)  # the first sample at or after tick k's end
+        assert f[:, 0].sum() * period == pytest.approx(dv, rel=1e-12)
+        np.testing.assert_allclose(f[:, 2], -GRAVITY, rtol=1e-15)
+        np.testing.assert_allclose(f[:, 1], 0.0, atol=1e-15)
+
+
+def test_steady_states_read_as_before() -> None:
+    """At rest (0, 0, -g) and in a steady turn the centripetal ``r u``, sample after sample;
+    under a constant acceleration, that acceleration."""
+    imu = quiet_imu(100.0)
+    for i in range(10):
+        f = imu.sample(VehicleState(time=i * 0.01)).specific_force
+        np.testing.assert_allclose(f, [0.0, 0.0, -GRAVITY], atol=1e-12)
+    imu = quiet_imu(100.0)
+    u, r = 0.6, 0.25
+    for i in range(10):
+        f = imu.sample(VehicleState(time=i * 0.01, velocity=np.array([u, 0.0, 0.0]),
+                                    angular_velocity=np.array([0.0, 0.0, r]))).specific_force
+        np.testing.assert_allclose(f, [0.0, r * u, -GRAVITY], atol=1e-12)
+    imu = quiet_imu(100.0)
+    for i in range(10):
+        t = i * 0.01
+        f = imu.sample(VehicleState(time=t, velocity=np.array([0.0, 0.0, 0.3 * t]),
+                                    acceleration=np.array([0.0, 0.0, 0.3]))).specific_force
+        np.testing.assert_allclose(f, [0.0, 0.0, 0.3 - GRAVITY], atol=1e-12)
+
+
+@pytest.mark.parametrize("imu_rate", [100.0, 50.0])
+def test_the_imu_feels_a_wall_impact_whatever_its_phase(imu_rate: float) -> None:
+    """The physics (VehicleLoop at 200 Hz, contacts) coasts Cyclops at 0.3 m/s into a wall, which
+    stops it within one tick; the IMU runs on the same scheduler at ``imu_rate`` with its grid at
+    several phases. The samples times the period add up to the ground truth's velocity change,
+    and the impact (the speed the truth had just before it, lost) shows in one sample, or two
+    adjacent ones, whatever the phase."""
+    import trimesh
+
+    from hilsim.runtime.scheduler import Scheduler, VehicleLoop
+    from hilsim.sim.world import Material, World, WorldObject
+
+    mesh = trimesh.creation.box(extents=[1.0, 40.0, 11.0])
+    mesh.apply_translation([10.5, 0.0, 4.5])
+    world = World([WorldObject("wall", mesh, Material("wall", 3e6))])
+    period = 1.0 / imu_rate
+    for offset in np.arange(0.0, period, 0.25 / PHYSICS):
+        vehicle = Vehicle.from_file(CYCLOPS)
+        start = VehicleState(position=np.array([9.3, 0.0, 2.0]), velocity=np.array([0.3, 0.0, 0.0]))
+        loop = VehicleLoop(vehicle, None, start, physics_rate=PHYSICS, world=world)
+        truth: dict[float, tuple[float, bool]] = {}
+        loop.tick_listeners.append(lambda s, info: truth.__setitem__(round(s.time, 9), (s.velocity[0], info.touching)))
+        samples: list[tuple[float, float]] = []
+        imu = quiet_imu(imu_rate, offset=float(offset))
+        sched = Scheduler()
+        loop.attach(sched, [imu], on_reading=lambda s, r: samples.append((loop.state.time, r.specific_force[0])))
+        sched.run(1.5)
+        times = sorted(truth)
+        k = next(i for i, t in enumerate(times) if truth[t][1])  # the impact tick
+        u_before, u_after = truth[times[k - 1]][0], truth[times[k]][0]
+        assert u_before > 0.2 and abs(u_after) < 1e-6  # no restitution: the wall took it all
+        t_imp = times[k]
+        # each sample (after the first, which has no previous one) times the time it covers (the
+        # period; a physics tick less or more where a float tie put the sample before that
+        # instant's physics) adds up to the truth's velocity change
+        t_s = np.array([t for t, _ in samples])
+        f_s = np.array([f for _, f in samples])
+        span = np.diff(t_s)
+        assert np.all(np.abs(span - period) <= 1.0 / PHYSICS + 1e-9)
+        u = [truth[round(t, 9)][0] if t > 0 else 0.3 for t in t_s]
+        assert float(f_s[1:] @ span) == pytest.approx(u[-1] - u[0], abs=1e-12)
+        # the impact: the sample whose window holds its tick, or that and the next
+        at = int(np.searchsorted(t_s, t_imp - 1e-9))
+        near = f_s[at:at + 2] * span[at - 1:at + 1]
+        assert near.sum() == pytest.approx(-u_before, rel=0.02), offset
+        assert near[0] == pytest.approx(-u_before, rel=0.02) or near[1] < -0.45 * u_before
+        rest = np.delete(f_s[1:] * span, [at - 1, at])
+        assert np.max(np.abs(rest)) < 0.01 * u_before  # elsewhere only the drag's slow deceleration
