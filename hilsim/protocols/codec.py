@@ -26,6 +26,7 @@ or, the same thing, ``for ev in drain(dec, chunk): ...``.
   time): the fuzz target table (``tests/fuzz/targets.py``) holds every decoder
   to that.
 
+A decoder that buffers bytes builds on :class:`ByteBuffer` (``receive_data``, ``buffered_bytes``).
 Line protocols (NMEA 0183, JSON lines, text commands) frame with :class:`LineFramer`.
 File readers take ``bytes`` or a binary stream (``typing.BinaryIO``), never a path.
 
@@ -40,7 +41,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Final, Generic, Iterator, Protocol, TypeVar, Union
+from typing import ClassVar, Final, Generic, Iterator, Protocol, TypeVar, Union
 
 
 class NeedData(enum.Enum):
@@ -67,6 +68,18 @@ class Junk(BadInput):
     """``n_bytes`` skipped while looking for the next frame start."""
 
     n_bytes: int = 0
+
+
+@dataclass(frozen=True, init=False)
+class CountedJunk(Junk):
+    """A :class:`Junk` made from its count: ``Junk(n_bytes)``, or ``Junk(n_bytes, reason)``. A
+    protocol's subclass names its own default reason in ``DEFAULT_REASON``."""
+
+    DEFAULT_REASON: ClassVar[str] = "bytes skipped while resynchronising"
+
+    def __init__(self, n_bytes: int, reason: str | None = None) -> None:
+        object.__setattr__(self, "reason", self.DEFAULT_REASON if reason is None else reason)
+        object.__setattr__(self, "n_bytes", n_bytes)
 
 
 @dataclass(frozen=True)
@@ -111,6 +124,36 @@ def drain(decoder: StreamDecoder[E], data: bytes = b"", limit: int = 100_000) ->
         yield ev
 
 
+class ByteBuffer:
+    """The receive buffer a stream decoder builds on: ``_buf`` holds the bytes received, ``_pos`` is
+    the first one not yet consumed or skipped, ``_base`` the stream offset of ``_buf[0]`` (an offset
+    kept as ``_base + index`` survives the dropping of consumed bytes). A decoder consumes by moving
+    ``_pos``; :meth:`receive_data` drops the consumed bytes once they are at least half the buffer,
+    so consuming costs amortized O(1) per byte rather than a copy of the buffer per packet.
+
+    A subclass calls ``super().__init__()`` and implements ``next_event``; ``buffered_bytes`` and
+    ``receive_data`` of :class:`StreamDecoder` are these."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._pos = 0
+        self._base = 0
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes received and not yet consumed or skipped."""
+        return len(self._buf) - self._pos
+
+    def receive_data(self, data: bytes) -> None:
+        """Append bytes received from the peer (any cut; ``b""`` is allowed and changes nothing)."""
+        pos = self._pos
+        if pos and 2 * pos >= len(self._buf):
+            del self._buf[:pos]
+            self._base += pos
+            self._pos = 0
+        self._buf += data
+
+
 @dataclass(frozen=True)
 class Line:
     """One line without its terminator (``\\n``, ``\\r\\n``; a lone ``\\r`` too when the framer allows it)."""
@@ -118,7 +161,7 @@ class Line:
     data: bytes
 
 
-class LineFramer:
+class LineFramer(ByteBuffer):
     """Splits a byte stream into lines (sans-I/O), for NMEA 0183, JSON lines and text commands.
 
     ``next_event()`` gives :class:`Line` (terminator removed), :class:`Oversize` for a line
@@ -133,26 +176,15 @@ class LineFramer:
     def __init__(self, max_line: int = 4096, *, cr_ends_line: bool = False, keep_blank: bool = False) -> None:
         if max_line < 1:
             raise ValueError("max_line must be positive")
+        super().__init__()
         self.max_line = int(max_line)
         self.cr_ends_line = cr_ends_line
         self.keep_blank = keep_blank
-        self._buf = bytearray()
-        self._pos = 0           # first unconsumed byte
         self._scanned = 0       # bytes from _pos already searched for a terminator
         self._discarding = False  # inside an oversize line: drop bytes to the next terminator
         self._dropped = 0
         self.lines = 0
         self.oversize = 0
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos and 2 * self._pos >= len(self._buf):
-            del self._buf[:self._pos]
-            self._pos = 0
-        self._buf += data
 
     def _find_end(self, start: int) -> tuple[int, int]:
         """(index of the terminator, its length) at or after ``start``, or (-1, 0)."""

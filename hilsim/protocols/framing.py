@@ -60,6 +60,8 @@ import heapq
 from dataclasses import dataclass, field
 from typing import ClassVar, Final, Generic, TypeVar
 
+from hilsim.protocols.codec import ByteBuffer
+
 OK: Final = "ok"
 NEED: Final = "need"
 
@@ -71,12 +73,14 @@ Verdict = tuple[str, int]
 
 
 @dataclass
-class ResyncFramer(Generic[T]):
+class ResyncFramer(ByteBuffer, Generic[T]):
     """Base of a resynchronising packet decoder (see the module docstring for the rules).
 
     A subclass (usually a dataclass too: these fields are not ``__init__``
     arguments) implements the hooks and exposes ``next_event`` on top of
-    :meth:`_next_frame`. ``receive_data`` and ``buffered_bytes`` are public.
+    :meth:`_next_frame`. ``receive_data`` and ``buffered_bytes`` (of
+    :class:`~hilsim.protocols.codec.ByteBuffer`, whose buffer fields are
+    declared here for the dataclass) are public.
     """
 
     marker_size: ClassVar[int] = 1  # bytes of a start marker
@@ -119,19 +123,6 @@ class ResyncFramer(Generic[T]):
         """``n`` bytes were thrown away while resynchronising."""
 
     # ------------------------------------------------------------ stream
-
-    @property
-    def buffered_bytes(self) -> int:
-        """Bytes received and not yet consumed or skipped."""
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        pos = self._pos
-        if pos and 2 * pos >= len(self._buf):
-            del self._buf[:pos]
-            self._base += pos
-            self._pos = 0
-        self._buf += data
 
     def _skip(self, n: int) -> None:
         self._pos += n

@@ -37,7 +37,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Final, Optional, Union
 
-from hilsim.protocols.codec import NEED_DATA, BadFrame, Junk, NeedData
+from hilsim.protocols.codec import NEED_DATA, BadFrame, ByteBuffer, Junk, NeedData
 
 BROADCAST: Final = 0
 TRANSPARENT: Final = 250          # every device answers it (stand-alone use only)
@@ -168,7 +168,7 @@ class WrongLength(BadFrame):
 KellerEvent = Union[KellerRequest, WrongLength, BadFrame, Junk]
 
 
-class KellerRequestDecoder:
+class KellerRequestDecoder(ByteBuffer):
     """Requests from a master on a KELLER-only line (sans-I/O; :mod:`hilsim.protocols.codec`).
 
     Frames are delimited by the length their function code defines, so requests sent
@@ -185,24 +185,13 @@ class KellerRequestDecoder:
     """
 
     def __init__(self) -> None:
-        self._buf = bytearray()
-        self._pos = 0           # first byte of _buf not yet consumed
+        super().__init__()
         self._queue: deque[KellerEvent] = deque()
         self._junk = 0          # bytes skipped and not yet reported
         self._hunting = False   # sync lost (no gap since): only frames the rules delimit are looked for
         self.requests = 0
         self.crc_errors = 0
         self.junk_bytes = 0
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos:
-            del self._buf[:self._pos]
-            self._pos = 0
-        self._buf += data
 
     def next_event(self) -> Union[KellerEvent, NeedData]:
         if self._queue:

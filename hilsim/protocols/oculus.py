@@ -283,13 +283,10 @@ class BadMessage(codec.BadInput):
     msg_id: int = -1
 
 
-@dataclass(frozen=True, init=False)
-class Junk(codec.Junk):
+class Junk(codec.CountedJunk):
     """``n_bytes`` skipped while looking for the next ``53 4F`` id."""
 
-    def __init__(self, n_bytes: int, reason: str = "bytes before the next 53 4F id") -> None:
-        object.__setattr__(self, "reason", reason)
-        object.__setattr__(self, "n_bytes", n_bytes)
+    DEFAULT_REASON = "bytes before the next 53 4F id"
 
 
 @dataclass(frozen=True, init=False)
@@ -540,7 +537,7 @@ class ReaderStats:
     oversize: int = 0
 
 
-class OculusReader:
+class OculusReader(codec.ByteBuffer):
     """Incremental decoder of an Oculus TCP byte stream (either direction).
 
     ``receive_data(bytes)`` then ``next_event()`` until NEED_DATA. Bytes before
@@ -556,20 +553,9 @@ class OculusReader:
     """
 
     def __init__(self, max_payload: int = MAX_SERVER_PAYLOAD) -> None:
+        super().__init__()
         self.max_payload = int(max_payload)
-        self._buf = bytearray()
-        self._pos = 0
         self.stats = ReaderStats()
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos and 2 * self._pos >= len(self._buf):
-            del self._buf[: self._pos]
-            self._pos = 0
-        self._buf += data
 
     def events(self) -> list[Event]:
         """Every event available now (drains the reader)."""

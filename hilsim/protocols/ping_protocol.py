@@ -31,7 +31,7 @@ import struct
 from dataclasses import dataclass, field
 from typing import Any, Final, Mapping, Union
 
-from hilsim.protocols.codec import NEED_DATA, BadFrame, Junk, NeedData, Oversize
+from hilsim.protocols.codec import NEED_DATA, BadFrame, ByteBuffer, Junk, NeedData, Oversize
 
 HEADER: Final = struct.Struct("<2sHHBB")   # 'BR', payload_length, message_id, src, dst
 START: Final = b"BR"
@@ -245,27 +245,16 @@ class BadPayload(BadFrame):
 Event = Union[Message, Junk, Oversize, BadChecksum, UnknownMessage, BadPayload]
 
 
-class PingDecoder:
+class PingDecoder(ByteBuffer):
     """Incremental ping-protocol decoder (sans-I/O; see the module docstring).
 
     Memory: at most ``HEADER_LEN + max_payload + CHECKSUM_LEN`` bytes plus the last chunk."""
 
     def __init__(self, max_payload: int = MAX_PAYLOAD) -> None:
+        super().__init__()
         self.max_payload = int(max_payload)
-        self._buf = bytearray()
-        self._pos = 0
         self.messages = 0
         self.errors = 0
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos and 2 * self._pos >= len(self._buf):
-            del self._buf[:self._pos]
-            self._pos = 0
-        self._buf += data
 
     def _skip(self, n: int) -> Junk:
         self._pos += n

@@ -34,7 +34,7 @@ import struct
 from dataclasses import dataclass
 from typing import Callable, Final, Optional, Sequence, Union
 
-from hilsim.protocols.codec import NEED_DATA, BadFrame, Junk, NeedData
+from hilsim.protocols.codec import NEED_DATA, BadFrame, ByteBuffer, Junk, NeedData
 
 HEADER: Final = 0x55
 COMMAND_HEAD: Final = b"\xff\xaa"
@@ -140,26 +140,15 @@ class PartialCommand(BadFrame):
     """A command cut short: the next ``FF AA`` came inside it, or the line went idle."""
 
 
-class PacketDecoder:
+class PacketDecoder(ByteBuffer):
     """Host side: the device's packet stream in, :class:`Packet` events out. Bytes before a
     0x55 are :class:`Junk`; a bad checksum gives :class:`BadFrame` and the search goes on
     from the next byte (as WitMotion's SDK does). Memory: one packet plus the last chunk."""
 
     def __init__(self) -> None:
-        self._buf = bytearray()
-        self._pos = 0
+        super().__init__()
         self.packets = 0
         self.bad_checksums = 0
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos:
-            del self._buf[:self._pos]
-            self._pos = 0
-        self._buf += data
 
     def next_event(self) -> Union[Packet, BadFrame, Junk, NeedData]:
         buf, pos = self._buf, self._pos
@@ -181,7 +170,7 @@ class PacketDecoder:
         return Packet(buf[pos + 1], struct.unpack_from("<4h", buf, pos + 2))
 
 
-class CommandDecoder:
+class CommandDecoder(ByteBuffer):
     """Device side: the host's ``FF AA reg lo hi`` commands in, :class:`Command` out.
 
     Bytes before ``FF AA`` are :class:`Junk`. A command whose three bytes after the head
@@ -192,20 +181,9 @@ class CommandDecoder:
     """
 
     def __init__(self) -> None:
-        self._buf = bytearray()
-        self._pos = 0
+        super().__init__()
         self.commands = 0
         self.partial = 0
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos:
-            del self._buf[:self._pos]
-            self._pos = 0
-        self._buf += data
 
     def next_event(self) -> Union[Command, PartialCommand, Junk, NeedData]:
         buf, pos = self._buf, self._pos

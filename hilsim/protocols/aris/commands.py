@@ -86,13 +86,8 @@ class Oversize(codec.Oversize):
         object.__setattr__(self, "length", length)
 
 
-@dataclass(frozen=True, init=False)
-class Junk(codec.Junk):
-    """Bytes skipped while resynchronising."""
-
-    def __init__(self, n_bytes: int, reason: str = "bytes skipped while resynchronising") -> None:
-        object.__setattr__(self, "reason", reason)
-        object.__setattr__(self, "n_bytes", n_bytes)
+class Junk(codec.CountedJunk):
+    """Bytes skipped while resynchronising (``Junk(n_bytes)``)."""
 
 
 Command = Union[SetDateTime, SetFrameStreamReceiver, SetAcoustics, SetSalinity, SetFocus, Ping]
@@ -223,7 +218,7 @@ def parse_command(payload: bytes, strict: bool = False) -> CommandEvent:
     return Unsupported(t)
 
 
-class CommandReader:
+class CommandReader(codec.ByteBuffer):
     """Incremental decoder of the ARIS command channel (sonar side).
 
     ``receive_data(bytes)`` then ``next_event()`` until NEED_DATA. In sync, each
@@ -251,10 +246,8 @@ class CommandReader:
     """
 
     def __init__(self, max_length: int = MAX_COMMAND_LENGTH) -> None:
+        super().__init__()  # _buf, _pos and _base: the stream offset of _buf[0]
         self.max_length = int(max_length)
-        self._buf = bytearray()
-        self._pos = 0
-        self._base = 0  # stream offset of _buf[0]
         self._synced = True
         self._pending: list[CommandEvent] = []
         self._wait_end = 0  # in sync: the frame at _pos is incomplete until the stream reaches this offset
@@ -266,17 +259,6 @@ class CommandReader:
         self._waiting_set: set[int] = set()
         self.errors = 0
         self.commands = 0
-
-    @property
-    def buffered_bytes(self) -> int:
-        return len(self._buf) - self._pos
-
-    def receive_data(self, data: bytes) -> None:
-        if self._pos and 2 * self._pos >= len(self._buf):
-            del self._buf[: self._pos]
-            self._base += self._pos
-            self._pos = 0
-        self._buf += data
 
     def events(self) -> list[CommandEvent]:
         """Every event available now (drains the reader)."""
