@@ -49,9 +49,14 @@ class CanFrame:
         object.__setattr__(self, "dlc", dlc)
 
     def __repr__(self) -> str:
-        ident = f"{self.arbitration_id:08X}" if self.is_extended else f"{self.arbitration_id:03X}"
         body = f"RTR dlc={self.dlc}" if self.is_remote else self.data.hex(" ")
-        return f"CanFrame({ident} [{body}])"
+        return f"CanFrame({self.hex_id} [{body}])"
+
+    @property
+    def hex_id(self) -> str:
+        """The identifier in upper-case hex, 8 digits if extended, else 3 (as slcan, socketcand
+        and candump write it)."""
+        return f"{self.arbitration_id:08X}" if self.is_extended else f"{self.arbitration_id:03X}"
 
     @property
     def bits_on_wire(self) -> int:

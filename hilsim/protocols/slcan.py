@@ -116,11 +116,11 @@ def parse_frame_line(line: bytes) -> CanFrame | str:
 
 def format_frame(frame: CanFrame, lowercase: bool = False) -> bytes:
     """A frame -> its line with CR (``t12340011223344\\r``)."""
+    kind = "R" if frame.is_remote else "T"
+    head = (kind if frame.is_extended else kind.lower()) + frame.hex_id
     if frame.is_remote:
-        head = f"R{frame.arbitration_id:08X}" if frame.is_extended else f"r{frame.arbitration_id:03X}"
         line = f"{head}{frame.dlc}"
     else:
-        head = f"T{frame.arbitration_id:08X}" if frame.is_extended else f"t{frame.arbitration_id:03X}"
         line = f"{head}{len(frame.data)}{frame.data.hex().upper()}"
     if lowercase:
         line = line[0] + line[1:].lower()

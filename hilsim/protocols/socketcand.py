@@ -70,16 +70,14 @@ Event = Union[BusOpened, RawModeEntered, SendFrame, BadMessage]
 
 def format_frame(frame: CanFrame, timestamp: float) -> bytes:
     """``< frame ID SEC.USEC DATA >`` for a frame received at ``timestamp`` [s] (UNIX time)."""
-    ident = f"{frame.arbitration_id:08X}" if frame.is_extended else f"{frame.arbitration_id:03X}"
     usec = int(round(max(0.0, timestamp) * 1e6))
-    return f"< frame {ident} {usec // 1_000_000}.{usec % 1_000_000:06d} {frame.data.hex().upper()} >".encode()
+    return f"< frame {frame.hex_id} {usec // 1_000_000}.{usec % 1_000_000:06d} {frame.data.hex().upper()} >".encode()
 
 
 def format_send(frame: CanFrame) -> bytes:
     """Client side: ``< send ID LEN B0 ... >`` as python-can writes it."""
-    ident = f"{frame.arbitration_id:08X}" if frame.is_extended else f"{frame.arbitration_id:03X}"
     data = " ".join(f"{b:x}" for b in frame.data)
-    return f"< send {ident} {len(frame.data):X} {data} >".encode()
+    return f"< send {frame.hex_id} {len(frame.data):X} {data} >".encode()
 
 
 def parse_frame_message(text: bytes) -> CanFrame | None:
