@@ -55,40 +55,44 @@ def _hms(seconds_of_day: float | None) -> str:
     return f"{h:02d}{m:02d}{rem // 100:02d}.{rem % 100:02d}"
 
 
-def format_lat(lat_deg: float) -> tuple[str, str]:
-    """(``ddmm.mmmmm``, ``N``/``S``) of a latitude [deg]."""
-    a = abs(lat_deg)
+def _format_angle(deg: float, digits: int, hemispheres: tuple[str, str]) -> tuple[str, str]:
+    """(degrees in ``digits`` digits then ``mm.mmmmm``, the hemisphere letter: ``hemispheres[0]``
+    for ``deg`` >= 0, else ``hemispheres[1]``) of an angle [deg]."""
+    a = abs(deg)
     d = int(a)
     minutes = round((a - d) * 60.0, 5)
     if minutes >= 60.0:
         d, minutes = d + 1, 0.0
-    return f"{d:02d}{minutes:08.5f}", "N" if lat_deg >= 0 else "S"
+    return f"{d:0{digits}d}{minutes:08.5f}", hemispheres[0] if deg >= 0 else hemispheres[1]
+
+
+def format_lat(lat_deg: float) -> tuple[str, str]:
+    """(``ddmm.mmmmm``, ``N``/``S``) of a latitude [deg]."""
+    return _format_angle(lat_deg, 2, ("N", "S"))
 
 
 def format_lon(lon_deg: float) -> tuple[str, str]:
     """(``dddmm.mmmmm``, ``E``/``W``) of a longitude [deg]."""
-    a = abs(lon_deg)
-    d = int(a)
-    minutes = round((a - d) * 60.0, 5)
-    if minutes >= 60.0:
-        d, minutes = d + 1, 0.0
-    return f"{d:03d}{minutes:08.5f}", "E" if lon_deg >= 0 else "W"
+    return _format_angle(lon_deg, 3, ("E", "W"))
+
+
+def _parse_angle(value: str, hemi: str, digits: int, hemispheres: tuple[str, str], what: str) -> float:
+    """[deg] of ``value`` (degrees in ``digits`` digits, then minutes) and its hemisphere letter
+    ``hemi`` (``hemispheres[1]`` negative); ValueError naming ``what`` if malformed."""
+    if len(value) < digits + 2 or hemi not in hemispheres:
+        raise ValueError(f"bad {what} {value!r},{hemi!r}")
+    deg = int(value[:digits]) + float(value[digits:]) / 60.0
+    return -deg if hemi == hemispheres[1] else deg
 
 
 def parse_lat(value: str, hemi: str) -> float:
     """Latitude [deg] of ``ddmm.mmmm`` and N/S (ValueError if malformed)."""
-    if len(value) < 4 or hemi not in ("N", "S"):
-        raise ValueError(f"bad latitude {value!r},{hemi!r}")
-    deg = int(value[:2]) + float(value[2:]) / 60.0
-    return -deg if hemi == "S" else deg
+    return _parse_angle(value, hemi, 2, ("N", "S"), "latitude")
 
 
 def parse_lon(value: str, hemi: str) -> float:
     """Longitude [deg] of ``dddmm.mmmm`` and E/W (ValueError if malformed)."""
-    if len(value) < 5 or hemi not in ("E", "W"):
-        raise ValueError(f"bad longitude {value!r},{hemi!r}")
-    deg = int(value[:3]) + float(value[3:]) / 60.0
-    return -deg if hemi == "W" else deg
+    return _parse_angle(value, hemi, 3, ("E", "W"), "longitude")
 
 
 def gga(talker: str, utc_s: float | None, lat_deg: float | None, lon_deg: float | None, quality: int,
