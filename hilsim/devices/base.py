@@ -36,8 +36,10 @@ option the device refuses raises :class:`OptionError` naming the option.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import logging
+import math
 from abc import ABC, abstractmethod
 from collections import Counter
 from pathlib import Path
@@ -46,7 +48,7 @@ from typing import Any, Callable, ClassVar, Mapping
 from hilsim.devices.context import (DeviceContext, Endpoint, OptionError, Periodic, RenderedFrame, RenderFailed,
                                     VehicleView)
 
-__all__ = ["CanDevice", "Device", "DeviceContext", "Endpoint", "OptionError", "Periodic", "PtyDevice",
+__all__ = ["CanDevice", "Device", "DeviceContext", "Endpoint", "NoiseFault", "OptionError", "Periodic", "PtyDevice",
            "RenderedFrame", "RenderFailed", "TcpServerDevice", "VehicleView"]
 
 from hilsim.devices.canbus import acquire_bus, bus_location, check_can_options
@@ -395,6 +397,33 @@ class CanDevice(Device):
             bs = self.bus.status()
             base = {k: float(bs[k]) for k in ("clients", "frames_in", "dropped_in", "dropped_out") if k in bs}
         return {**base, **super().status()}
+
+
+class NoiseFault:
+    """The ``noise`` fault of a sensor device: some figures of its sensor model's profile (a frozen
+    dataclass), ``fields``, multiplied by a factor.
+
+    :meth:`inject` sets ``sensor.profile`` to the clean profile (the one the sensor had when the
+    fault was first injected) with each of ``fields`` multiplied by ``params["factor"]`` (default
+    10; ValueError unless finite and >= 0): injected again, the factor applies to the clean
+    profile, not on top. :meth:`clear` puts the clean profile back."""
+
+    def __init__(self, *fields: str) -> None:
+        self.fields = fields
+        self.clean: Any = None
+
+    def inject(self, sensor: Any, params: Mapping[str, Any]) -> None:
+        factor = float(params.get("factor", 10.0))
+        if not (factor >= 0 and math.isfinite(factor)):
+            raise ValueError(f"noise factor must be >= 0, got {factor}")
+        if self.clean is None:
+            self.clean = sensor.profile
+        p = self.clean
+        sensor.profile = dataclasses.replace(p, **{f: getattr(p, f) * factor for f in self.fields})
+
+    def clear(self, sensor: Any) -> None:
+        if self.clean is not None:
+            sensor.profile = self.clean
 
 
 class _Unsubscribe:

@@ -27,7 +27,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from hilsim.devices.base import DeviceContext, Endpoint, TcpServerDevice
+from hilsim.devices.base import DeviceContext, Endpoint, NoiseFault, TcpServerDevice
 from hilsim.protocols import dvl_json as dj
 from hilsim.protocols import dvl_serial as ds
 from hilsim.protocols.codec import Oversize, drain
@@ -66,7 +66,7 @@ class DvlDevice(TcpServerDevice):
         self.last_ping: Any = None
         self.last_report_t: float | None = None
         self.faults: dict[str, Any] = {}
-        self._clean_profile: Any = None
+        self._noise = NoiseFault("velocity_noise", "velocity_noise_fraction", "distance_noise")
 
     # -- lifecycle -----------------------------------------------------------------
     async def start(self) -> list[Endpoint]:
@@ -278,20 +278,12 @@ class DvlDevice(TcpServerDevice):
     # -- faults ----------------------------------------------------------------------
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
         if fault == "noise":
-            factor = float(params.get("factor", 10.0))
-            if not (factor >= 0 and math.isfinite(factor)):
-                raise ValueError(f"noise factor must be >= 0, got {factor}")
-            if self._clean_profile is None:
-                self._clean_profile = self.sim.profile
-            p = self._clean_profile
-            self.sim.profile = dataclasses.replace(p, velocity_noise=p.velocity_noise * factor,
-                                                   velocity_noise_fraction=p.velocity_noise_fraction * factor,
-                                                   distance_noise=p.distance_noise * factor)
+            self._noise.inject(self.sim, params)
         elif fault not in self.FAULTS:
             super().inject_fault(fault, params)
         self.faults[fault] = dict(params)
 
     def clear_fault(self, fault: str) -> None:
         self.faults.pop(fault, None)
-        if fault == "noise" and self._clean_profile is not None:
-            self.sim.profile = self._clean_profile
+        if fault == "noise":
+            self._noise.clear(self.sim)

@@ -23,7 +23,7 @@ import logging
 import math
 from typing import Any, Mapping
 
-from hilsim.devices.base import DeviceContext, Endpoint, PtyDevice
+from hilsim.devices.base import DeviceContext, Endpoint, NoiseFault, PtyDevice
 from hilsim.protocols import nmea
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ class GnssDevice(PtyDevice):
                                     f"bit/s; {self.options['baudrate']} baud is too slow")
         self.faults: dict[str, Any] = {}
         self.last_epoch = b""
-        self._clean_profile: Any = None
+        self._noise = NoiseFault("horizontal_noise", "vertical_noise", "velocity_noise")
 
     async def start(self) -> list[Endpoint]:
         link = await self.open_pty(self._on_data)
@@ -111,15 +111,7 @@ class GnssDevice(PtyDevice):
 
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
         if fault == "noise":
-            factor = float(params.get("factor", 10.0))
-            if not (factor >= 0 and math.isfinite(factor)):
-                raise ValueError(f"noise factor must be >= 0, got {factor}")
-            if self._clean_profile is None:
-                self._clean_profile = self.sim.profile
-            p = self._clean_profile
-            self.sim.profile = dataclasses.replace(p, horizontal_noise=p.horizontal_noise * factor,
-                                                   vertical_noise=p.vertical_noise * factor,
-                                                   velocity_noise=p.velocity_noise * factor)
+            self._noise.inject(self.sim, params)
         elif fault == "outage":
             self.sim.outage = True
         elif fault not in self.FAULTS:
@@ -128,7 +120,7 @@ class GnssDevice(PtyDevice):
 
     def clear_fault(self, fault: str) -> None:
         self.faults.pop(fault, None)
-        if fault == "noise" and self._clean_profile is not None:
-            self.sim.profile = self._clean_profile
+        if fault == "noise":
+            self._noise.clear(self.sim)
         elif fault == "outage":
             self.sim.outage = False

@@ -20,12 +20,11 @@ repeated), noise (``factor`` x the distance noise).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from typing import Any, Mapping
 
-from hilsim.devices.base import DeviceContext, Endpoint, PtyDevice
+from hilsim.devices.base import DeviceContext, Endpoint, NoiseFault, PtyDevice
 from hilsim.protocols import ping_protocol as pp
 from hilsim.protocols.codec import drain
 
@@ -53,7 +52,7 @@ class Ping1dDevice(PtyDevice):
         self.ping_enabled = True
         self.ping_interval_ms = 100
         self.faults: dict[str, Any] = {}
-        self._clean_profile: Any = None
+        self._noise = NoiseFault("distance_noise_fraction")
         self._next_ping = 0.0
 
     async def start(self) -> list[Endpoint]:
@@ -206,18 +205,12 @@ class Ping1dDevice(PtyDevice):
     # -- faults --------------------------------------------------------------------
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
         if fault == "noise":
-            factor = float(params.get("factor", 10.0))
-            if not (factor >= 0 and math.isfinite(factor)):
-                raise ValueError(f"noise factor must be >= 0, got {factor}")
-            if self._clean_profile is None:
-                self._clean_profile = self.sim.profile
-            p = self._clean_profile
-            self.sim.profile = dataclasses.replace(p, distance_noise_fraction=p.distance_noise_fraction * factor)
+            self._noise.inject(self.sim, params)
         elif fault not in self.FAULTS:
             super().inject_fault(fault, params)
         self.faults[fault] = dict(params)
 
     def clear_fault(self, fault: str) -> None:
         self.faults.pop(fault, None)
-        if fault == "noise" and self._clean_profile is not None:
-            self.sim.profile = self._clean_profile
+        if fault == "noise":
+            self._noise.clear(self.sim)
