@@ -206,7 +206,7 @@ class TestEveryDecoder:
 
 def test_every_decoder_has_a_target() -> None:
     """The issue's list, once: DDF (stream and commands), Oculus, ARIS (commands, frames), socketcand,
-    slcan, VESC CAN and UART, DroneCAN, VRCSR, Modbus TCP and RTU requests through pymodbus."""
+    slcan, VESC CAN and UART, DroneCAN, VRCSR, Modbus TCP and RTU requests."""
     assert set(TARGETS) == {"ddf-stream", "ddf-commands", "oculus", "aris-commands", "aris-frames", "socketcand",
                             "slcan", "vesc-uart", "vrcsr", "vesc-can", "dronecan", "modbus-tcp", "modbus-rtu",
                             "keller-bus", "witmotion-commands", "witmotion-packets",  # issue #17

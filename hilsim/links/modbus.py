@@ -17,10 +17,11 @@ Why not pymodbus's own server classes: each keeps its own copy of the registers
 (a TCP and an RTU server would hold two states), the RTU one opens a serial
 port itself (a pty pair and a relay for the baud pacing) and hunts past frames
 with an unknown function instead of answering 01, the device address cannot
-change at run time, and there is no client limit. pymodbus's framers and PDU
-classes do the wire encoding here; the transport and the device's behaviour
-are ours. Nothing a client sends raises out of this module: a failure inside
-is logged, counted in ``stats.internal_errors`` and answered with 04.
+change at run time, and there is no client limit. The wire encoding is our own
+small codec too (:mod:`hilsim.protocols.modbus_pdu`: importing pymodbus would pull
+asyncio, socket and ssl into the sans-I/O layer). Nothing a client sends raises
+out of this module: a failure inside is logged, counted in
+``stats.internal_errors`` and answered with 04.
 """
 
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 Bytes from a master in, :class:`Request` events out, as the codec contract
 (:mod:`hilsim.protocols.codec`) has it: ``receive_data(bytes)`` then
-``next_event()`` until :data:`NEED_DATA`. The answers are built in
-:mod:`hilsim.protocols.modbus_device` (a device's registers, pymodbus's
-response classes and framers); the transports are :mod:`hilsim.links.modbus`.
+``next_event()`` until :data:`NEED_DATA`. The PDUs, frames and CRC are
+:mod:`hilsim.protocols.modbus_pdu`'s; the answers are built in
+:mod:`hilsim.protocols.modbus_device` (a device's registers); the transports are
+:mod:`hilsim.links.modbus`.
 
 * :class:`TcpRequestDecoder`: MBAP headers (7 bytes) + PDU. A header that is
   not Modbus TCP (protocol id != 0, length outside 2..:data:`MAX_TCP_LENGTH`)
@@ -28,23 +29,18 @@ import struct
 from dataclasses import dataclass
 from typing import Final, Optional, Protocol, Union
 
-from pymodbus.framer import FramerRTU, FramerSocket
-from pymodbus.pdu import DecodePDU
-
 from hilsim.protocols import codec
 from hilsim.protocols.codec import NEED_DATA, NeedData
+from hilsim.protocols.modbus_pdu import MBAP, RTU_MIN_SIZE, crc_ok
 
 MAX_RTU_ADU: Final = 256
 MAX_TCP_LENGTH: Final = 254  # MBAP length field: unit id + PDU (max 253 bytes)
-RTU_MIN_SIZE: Final = FramerRTU.MIN_SIZE  # address, function code, CRC
-REQUEST_DECODER: Final = DecodePDU(True)  # pymodbus's request PDU decoder (server side); stateless
 
 DIALECT_MAX_BURST: Final = 16  # a dialect frame failing its check at its length: the gap decides up to this
 RTU_NEED_MORE = 0      # rtu_request_length: more bytes are needed to tell
 RTU_UNDELIMITED = -1   # rtu_request_length: the length rules cannot tell (ends at silence)
 # Request ADU lengths (address + PDU + CRC) by function code, from the Modbus application
-# protocol spec V1.1b3 (section 6) and its serial line spec; pymodbus 3.16's request classes
-# (rtu_frame_size, rtu_byte_count_pos) agree where both define one.
+# protocol spec V1.1b3 (section 6) and its serial line spec.
 _RTU_FIXED = {0x01: 8, 0x02: 8, 0x03: 8, 0x04: 8, 0x05: 8, 0x06: 8,  # address, count/value
               0x07: 4, 0x0B: 4, 0x0C: 4, 0x11: 4,                    # no data
               0x16: 10,                                              # mask write: address, AND, OR
@@ -64,10 +60,10 @@ def rtu_request_length(buf: bytes | bytearray, pos: int = 0) -> int:
     if the rules cannot (an unknown or user function, 08/00 with other than 2 bytes
     of data, 2B with a MEI type other than 0E, a length over :data:`MAX_RTU_ADU`).
 
-    Unlike pymodbus: 08/00 is taken as 8 bytes only when those 8 bytes carry a good
-    CRC (the spec allows any data; masters send 2 bytes), the reserved 08
-    sub-functions are not delimited, and a function code with the top bit set (an
-    exception response, not a request) is not taken as 5 bytes.
+    08/00 is taken as 8 bytes only when those 8 bytes carry a good CRC (the spec
+    allows any data; masters send 2 bytes), the reserved 08 sub-functions are not
+    delimited, and a function code with the top bit set (an exception response, not
+    a request) is not taken as 5 bytes.
     """
     avail = len(buf) - pos
     if avail < 2:
@@ -91,25 +87,12 @@ def rtu_request_length(buf: bytes | bytearray, pos: int = 0) -> int:
             return RTU_UNDELIMITED
         if avail < 8:
             return RTU_NEED_MORE
-        return 8 if _crc_ok(buf, pos, pos + 8) else RTU_UNDELIMITED
+        return 8 if crc_ok(buf, pos, pos + 8) else RTU_UNDELIMITED
     if fc == 0x2B:
         if avail < 3:
             return RTU_NEED_MORE
         return 7 if buf[pos + 2] == 0x0E else RTU_UNDELIMITED  # read device identification
     return RTU_UNDELIMITED
-
-
-_CRC_TABLE = tuple(FramerRTU.crc16_table)
-
-
-def _crc_ok(buf: bytes | bytearray, start: int, end: int) -> bool:
-    """``buf[start:end]`` ends with the CRC-16/MODBUS of the bytes before it (low byte first).
-    pymodbus's table, in place: about twice as fast as ``FramerRTU.compute_CRC`` on a
-    slice, which counts while hunting through garbage (a CRC per candidate start)."""
-    crc, table = 0xFFFF, _CRC_TABLE
-    for i in range(start, end - 2):
-        crc = (crc >> 8) ^ table[(crc ^ buf[i]) & 0xFF]
-    return crc == buf[end - 2] | (buf[end - 1] << 8)
 
 
 # ------------------------------------------------------------------ events
@@ -176,7 +159,6 @@ class TcpRequestDecoder:
     """MBAP byte stream -> :class:`Request` (or one :class:`NotModbusTcp`, then nothing)."""
 
     def __init__(self) -> None:
-        self._framer = FramerSocket(REQUEST_DECODER)
         self.buffer = bytearray()
         self.closed = False
         self.close_reason = ""
@@ -214,8 +196,8 @@ class TcpRequestDecoder:
             return NEED_DATA
         frame = bytes(self.buffer[:n])
         del self.buffer[:n]
-        _, unit, tid, pdu = self._framer.decode(frame)
-        return Request(unit, pdu, tid)
+        tid, _, _, unit = MBAP.unpack_from(frame)
+        return Request(unit, frame[7:], tid)
 
 
 # ------------------------------------------------------------------ Modbus RTU
@@ -273,7 +255,7 @@ class RtuRequestDecoder:
                     self._resyncing = False
                     self._pos = end
                     return ForeignFrame(bytes(buf[pos:end]))
-                if dialect is None and _crc_ok(buf, pos, end):
+                if dialect is None and crc_ok(buf, pos, end):
                     self._resyncing = False
                     self._pos = end
                     return Request(buf[pos], bytes(buf[pos + 1:end - 2]))
@@ -303,7 +285,7 @@ class RtuRequestDecoder:
             self._pos = len(buf)
             if avail < RTU_MIN_SIZE:
                 return Malformed(f"a frame of {avail} bytes", bytes(buf[pos:]))
-            if _crc_ok(buf, pos, len(buf)):
+            if crc_ok(buf, pos, len(buf)):
                 return Request(buf[pos], bytes(buf[pos + 1:len(buf) - 2]))
             if self.dialect is not None and self.dialect.crc_ok(buf, pos, len(buf)):
                 return ForeignFrame(bytes(buf[pos:]))  # the dialect's device answers (a wrong length...)
@@ -318,6 +300,6 @@ class RtuRequestDecoder:
         return NEED_DATA
 
 
-__all__ = ["MAX_RTU_ADU", "MAX_TCP_LENGTH", "NEED_DATA", "REQUEST_DECODER", "RTU_MIN_SIZE", "RTU_NEED_MORE",
+__all__ = ["MAX_RTU_ADU", "MAX_TCP_LENGTH", "NEED_DATA", "RTU_MIN_SIZE", "RTU_NEED_MORE",
            "RTU_UNDELIMITED", "CrcError", "ForeignFrame", "Malformed", "RtuDialect", "NotModbusTcp", "Request", "RtuEvent",
            "RtuRequestDecoder", "TcpEvent", "TcpRequestDecoder", "rtu_request_length"]

@@ -7,11 +7,11 @@
   request PDU into a response PDU, or into silence, as the real device does:
   01 for a function it lacks, 03 for a malformed request or a bad count or value,
   02 for an address outside the map, the map's code for a write to a read-only
-  register. Requests are decoded by pymodbus's PDU decoder and answered with
-  pymodbus's response classes.
+  register. Requests are decoded and answered with the PDU codec of
+  :mod:`hilsim.protocols.modbus_pdu`.
 * :class:`TcpSession` and :class:`RtuSession`: one connection / one serial line:
-  the request decoders of :mod:`hilsim.protocols.modbus` in, reply frames (bytes,
-  pymodbus's ``FramerSocket`` / ``FramerRTU`` encoding) out. TCP: a header that
+  the request decoders of :mod:`hilsim.protocols.modbus` in, reply frames (bytes:
+  MBAP / RTU ADUs of :mod:`hilsim.protocols.modbus_pdu`) out. TCP: a header that
   is not Modbus closes the session. RTU: a frame for another address is
   ignored, broadcast (address 0) writes are done without a reply.
 
@@ -22,22 +22,11 @@ counted in ``stats.internal_errors`` and answered with 04 (or dropped).
 from __future__ import annotations
 
 import logging
-import struct
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Mapping
 
-from pymodbus.framer import FramerRTU, FramerSocket
-from pymodbus.pdu import ExceptionResponse, ModbusPDU
-from pymodbus.pdu.register_message import (
-    ReadHoldingRegistersResponse,
-    ReadInputRegistersResponse,
-    WriteMultipleRegistersResponse,
-    WriteSingleRegisterResponse,
-)
-
 from hilsim.protocols.codec import NEED_DATA
 from hilsim.protocols.modbus import (
-    REQUEST_DECODER,
     CrcError,
     ForeignFrame,
     Malformed,
@@ -46,6 +35,16 @@ from hilsim.protocols.modbus import (
     RtuDialect,
     RtuRequestDecoder,
     TcpRequestDecoder,
+)
+from hilsim.protocols.modbus_pdu import (
+    ReadRegisters,
+    Response,
+    decode_request,
+    exception_response,
+    mbap_frame,
+    read_response,
+    rtu_frame,
+    write_response,
 )
 from hilsim.protocols.registers import (
     DEVICE_FAILURE,
@@ -60,7 +59,6 @@ from hilsim.protocols.registers import (
 log = logging.getLogger("hilsim.links.modbus")  # the name its log lines always had
 
 WriteAction = Callable[[Register, float], None]  # may raise ModbusError
-_DECODER = REQUEST_DECODER
 
 
 @dataclass
@@ -126,54 +124,37 @@ class ModbusTarget:
             return True
         return tcp and unit in (0, 255)
 
-    def handle(self, unit: int, pdu: bytes, *, broadcast: bool = False) -> ModbusPDU | None:
-        """The response PDU (dev_id = ``unit``) to request ``pdu`` (function code + data);
+    def handle(self, unit: int, pdu: bytes, *, broadcast: bool = False) -> Response | None:
+        """The response (to address ``unit``) to request ``pdu`` (function code + data);
         None when nothing is to be sent (broadcast)."""
         self.stats.requests += 1
         fc = pdu[0] if pdu else 0
         try:
             response = self._dispatch(fc, pdu)
         except ModbusError as exc:
-            response = ExceptionResponse(fc & 0x7F, exc.code)
+            response = exception_response(fc, exc.code)
         except Exception:  # our bug: log it, answer "device failure", keep serving
             self.stats.internal_errors += 1
             log.exception("%s: error handling request %s", self.name, pdu.hex())
-            response = ExceptionResponse(fc & 0x7F, DEVICE_FAILURE)
+            response = exception_response(fc, DEVICE_FAILURE)
         if broadcast:
             self.stats.broadcasts += 1
             return None
-        if isinstance(response, ExceptionResponse):
-            self.stats.count_exception(response.exception_code)
+        reply = Response(unit, response)
+        if reply.is_exception:
+            self.stats.count_exception(reply.exception_code)
         self.stats.replies += 1
-        response.dev_id = unit
-        return response
+        return reply
 
-    def _dispatch(self, fc: int, pdu: bytes) -> ModbusPDU:
+    def _dispatch(self, fc: int, pdu: bytes) -> bytes:
+        """The response PDU; raises ModbusError for an exception response."""
         if fc not in self._functions:
             raise ModbusError(ILLEGAL_FUNCTION, f"function {fc:#04x}")
-        if fc in (3, 4, 6):
-            if len(pdu) != 5:
-                raise ModbusError(ILLEGAL_VALUE, f"function {fc}: PDU of {len(pdu)} bytes")
-        elif fc == 16:
-            if len(pdu) < 6:
-                raise ModbusError(ILLEGAL_VALUE, "function 16: short PDU")
-            count, nbytes = struct.unpack(">HB", pdu[3:6])
-            if not 1 <= count <= 123 or nbytes != 2 * count or len(pdu) != 6 + nbytes:
-                raise ModbusError(ILLEGAL_VALUE, f"function 16: count {count}, byte count {nbytes}")
-        else:  # a function listed in the map that this server does not implement
-            raise ModbusError(ILLEGAL_FUNCTION, f"function {fc:#04x} not implemented")
-        req = _DECODER.decode(pdu)
-        if req is None:  # pymodbus refused it (count out of 1..125)
-            raise ModbusError(ILLEGAL_VALUE, "request does not decode")
-        if fc in (3, 4):
-            regs = self.image.read(req.address, req.count)
-            cls = ReadHoldingRegistersResponse if fc == 3 else ReadInputRegistersResponse
-            return cls(registers=regs)
-        values = list(req.registers)
-        self._write(req.address, values)
-        if fc == 6:
-            return WriteSingleRegisterResponse(address=req.address, registers=values)
-        return WriteMultipleRegistersResponse(address=req.address, count=len(values))
+        req = decode_request(pdu)  # 01 for a function listed in the map that is not served here
+        if isinstance(req, ReadRegisters):
+            return read_response(fc, self.image.read(req.address, req.count))
+        self._write(req.address, list(req.values))
+        return write_response(req)
 
     def _write(self, address: int, words: list[int]) -> None:
         writes = self.image.check_write(address, words)
@@ -210,7 +191,6 @@ class TcpSession:
         self.target = target
         self.stats = stats if stats is not None else ModbusStats()
         self.decoder = TcpRequestDecoder()
-        self.framer = FramerSocket(_DECODER)  # replies are built with pymodbus's encoder
 
     @property
     def buffer(self) -> bytearray:
@@ -249,13 +229,12 @@ class TcpSession:
                 if self.target.answers(unit, tcp=True):
                     resp = self.target.handle(unit, pdu)
                 else:  # as a gateway whose serial device does not answer
-                    resp = ExceptionResponse(pdu[0] & 0x7F, GATEWAY_NO_RESPONSE, device_id=unit)
+                    resp = Response(unit, exception_response(pdu[0], GATEWAY_NO_RESPONSE))
                 if resp is not None:
                     self.stats.replies += 1
-                    if isinstance(resp, ExceptionResponse):
+                    if resp.is_exception:
                         self.stats.count_exception(resp.exception_code)
-                    resp.transaction_id = ev.transaction_id
-                    out.append(self.framer.buildFrame(resp))
+                    out.append(mbap_frame(ev.transaction_id, resp.unit, resp.pdu))
             except Exception:  # our bug: keep the connection and the server
                 self.stats.internal_errors += 1
                 log.exception("%s: error answering a request", self.target.name)
@@ -278,7 +257,6 @@ class RtuSession:
         self.targets = list(targets)
         self.stats = stats if stats is not None else ModbusStats()
         self.decoder = RtuRequestDecoder()
-        self.framer = FramerRTU(_DECODER)  # replies are built with pymodbus's encoder
         self.foreign: list[Callable[[bytes], bytes | None]] = []
 
     def add_dialect(self, dialect: RtuDialect, handler: Callable[[bytes], bytes | None]) -> None:
@@ -358,9 +336,9 @@ class RtuSession:
                     if resp is None:
                         return None
                     self.stats.replies += 1
-                    if isinstance(resp, ExceptionResponse):
+                    if resp.is_exception:
                         self.stats.count_exception(resp.exception_code)
-                    return self.framer.buildFrame(resp)
+                    return rtu_frame(resp.unit, resp.pdu)
             self.stats.ignored += 1
         except Exception:  # our bug
             self.stats.internal_errors += 1

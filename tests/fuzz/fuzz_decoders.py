@@ -30,8 +30,8 @@ if TYPE_CHECKING:
 
 ROOT = Path(__file__).resolve().parents[2]
 # Coverage feedback from our decoders and from the libraries that decode for them
-# (Modbus PDUs: pymodbus; VESC CAN: cantools). protobuf (ARIS) is C: not instrumented.
-INSTRUMENTED = ("hilsim", "pymodbus", "cantools")
+# (VESC CAN: cantools). protobuf (ARIS) is C: not instrumented.
+INSTRUMENTED = ("hilsim", "cantools")
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 

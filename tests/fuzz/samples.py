@@ -339,7 +339,7 @@ def dronecan_oversize() -> list[tuple[bytes, bytes]]:
     return [(start, middles), (b"", many)]
 
 
-# ----------------------------------------------------------------- Modbus (device side, through pymodbus)
+# ----------------------------------------------------------------- Modbus (device side)
 
 
 def pdus() -> list[bytes]:
