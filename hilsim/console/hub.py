@@ -1,7 +1,8 @@
 """The console's data side: what the devices publish, kept as the latest value, sent to pages.
 
 The hub listens on the bridge's observers: thruster commands (who commanded each last),
-faults and contacts always (small, kept bounded); readings, sonar frames and camera
+faults and contacts always (small, kept bounded), object moves (the scene a page's ``hello``
+holds is updated, and open pages get the objects again in a ``scene`` message); readings, sonar frames and camera
 pictures only while a page is open. A listener only stores a reference to the latest message (the device's call
 returns at once); the hub's own tick, 10 times a second of wall time and only while
 a page is open, builds one state message and encodes each sonar head's newest frame
@@ -28,6 +29,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from hilsim.console.commands import active_faults
+from hilsim.console.scene import object_outlines, scene_description, world_objects
 
 log = logging.getLogger("hilsim.console")
 
@@ -136,6 +138,14 @@ class Hub:
         self.tick_seconds = 0.0   # [s] of the loop spent building and offering page updates
         #: more rows for the endpoints table: name -> status() (the console itself, the recorder)
         self.extra_status: dict[str, Callable[[], Mapping[str, Any]]] = {}
+        self._scene: dict[str, Any] | None = None
+        self.scene_updates = 0
+
+    def scene(self) -> dict[str, Any]:
+        """The scene part of a page's ``hello`` (:func:`scene_description`), kept up to date."""
+        if self._scene is None:
+            self._scene = scene_description(self.bridge)
+        return self._scene
 
     # -- subscriptions ----------------------------------------------------------
     def start(self) -> None:
@@ -143,7 +153,7 @@ class Hub:
         logging.getLogger("hilsim").addHandler(self.last_errors)
         obs = self.bridge.observers
         self._unsub = [obs.subscribe("command/*", self._on_command), obs.subscribe("fault", self._on_event),
-                       obs.subscribe("contact", self._on_event)]
+                       obs.subscribe("contact", self._on_event), obs.subscribe("world", self._on_world)]
         self._track_handle = self.bridge.every("console-track", 0.5, self._on_track, priority=90, tolerance=0.5)
 
     def _on_command(self, topic: str, msg: Mapping[str, Any]) -> None:
@@ -159,6 +169,22 @@ class Hub:
     def _on_event(self, topic: str, msg: Mapping[str, Any]) -> None:
         ev = {k: _num(v) for k, v in msg.items()}
         (self.faults if topic == "fault" else self.contacts).append(ev)
+
+    def _on_world(self, topic: str, msg: Mapping[str, Any]) -> None:
+        """An object moved: its outlines again (where the bridge's world has it now), and every
+        open page gets the scene's objects in a ``scene`` message."""
+        name = msg.get("object")
+        if self._scene is None and not self.pages:
+            return  # the first hello builds the scene as it is then
+        scene = self.scene()
+        if isinstance(name, str):
+            new = {o["name"]: o for o in object_outlines(world_objects(self.bridge, name))}
+            scene["objects"] = [new.get(o["name"], o) for o in scene["objects"]]
+        self.scene_updates += 1
+        data = json.dumps({"type": "scene", "t": _num(msg.get("t")), "object": str(name)[:80],
+                           "objects": scene["objects"]}, separators=(",", ":"))
+        for p in list(self.pages):
+            p.offer("scene", data)
 
     def _on_sonar(self, topic: str, msg: Mapping[str, Any]) -> None:
         dev = topic.split("/", 1)[-1]

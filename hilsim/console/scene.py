@@ -3,7 +3,8 @@
 Pure functions of the scenario (no I/O): each object's mesh projected on the
 horizontal plane (top view: north up, east right) and on the north-down plane
 (side view: north right, depth down), as convex hulls in metres; the vehicle's
-hull as a box around its thrusters. Sent once to each page in its ``hello``.
+hull as a box around its thrusters. Sent to each page in its ``hello``, and the
+objects again when one moves (a timeline ``move``: a ``scene`` message).
 """
 
 from __future__ import annotations
@@ -79,14 +80,26 @@ def hull_box(thruster_positions: Sequence[Sequence[float]] | None, margin: float
     return {"min": np.round(lo, 3).tolist(), "max": np.round(hi, 3).tolist()}
 
 
+def world_objects(bridge: Any, name: str | None = None) -> list[Any]:
+    """The bridge's world objects where they are now (its main-process scene, which the timeline's
+    moves place; the scenario's objects if it has none); ``name``: only that object and its
+    parts (``name/...``)."""
+    world = getattr(bridge, "world", None)
+    objects = list(world.objects) if world is not None else list(bridge.scenario.objects)
+    if name is not None:
+        objects = [o for o in objects if o.name == name or o.name.startswith(name + "/")]
+    return objects
+
+
 def scene_description(bridge: Any) -> dict[str, Any]:
-    """The static part of a page's ``hello``: objects, hull, thruster and sensor names."""
+    """The scene part of a page's ``hello``: objects (where they are now), hull, thruster and
+    sensor names."""
     scenario = bridge.scenario
     ts = bridge.vehicle.thrusters
     positions = [list(map(float, t.position)) for t in ts.thrusters] if ts is not None else None
     return {
         "scenario": scenario.name,
-        "objects": object_outlines(scenario.objects),
+        "objects": object_outlines(world_objects(bridge)),
         "hull": hull_box(positions),
         "thrusters": list(ts.names) if ts is not None else [],
         "sensors": [{"name": s.name, "kind": s.kind} for s in scenario.sensors],

@@ -31,7 +31,6 @@ from aiohttp import WSMsgType, web
 
 from hilsim.console.commands import Refused, fault_menu, parse_command
 from hilsim.console.hub import Hub
-from hilsim.console.scene import scene_description
 
 log = logging.getLogger("hilsim.console")
 
@@ -119,7 +118,6 @@ class Console:
         self._refuse_logged = 0.0
         self._runner: web.AppRunner | None = None
         self._menu: list[dict[str, Any]] | None = None
-        self._scene: dict[str, Any] | None = None
 
     @property
     def url(self) -> str:
@@ -238,10 +236,9 @@ class Console:
         return ws
 
     def hello(self) -> dict[str, Any]:
-        if self._scene is None:
-            self._scene = scene_description(self.bridge)
+        if self._menu is None:
             self._menu = fault_menu(self.bridge)
-        return {"type": "hello", **self._scene, "faults_menu": self._menu,
+        return {"type": "hello", **self.hub.scene(), "faults_menu": self._menu,
                 "endpoints": [e.to_json() for e in self.bridge.endpoints],
                 "cameras": self.hub.camera.mounts if self.hub.camera is not None else [],
                 "sonars": [d.name for d in self.bridge.devices if getattr(d, "needs_renderer", False)],

@@ -19,7 +19,9 @@ Topics (schema):
 - ``/camera/<mount>`` (CompressedImage jpeg), while the recording asks for pictures
 - ``/tf`` (FrameTransforms), ``/vehicle/pose`` (PoseInFrame), ``/vehicle/state`` (JSON:
   velocity, attitude, thruster speeds) -- the ground truth at ``pose_rate_hz``
-- ``/world`` (SceneUpdate: every object's triangles, and the hull), once at the start
+- ``/world`` (SceneUpdate: every object's triangles, and the hull), at the start and again, whole,
+  whenever an object moves (a timeline ``move``), stamped with the move's time: a viewer seeking
+  anywhere gets the scene as it was then from the last ``/world`` before
 - ``/reading/<device>``, ``/command/<device>``, ``/faults``, ``/contacts`` (JSON)
 
 - ``/vehicle/fix`` (LocationFix): the vehicle's true geodetic position, where the scenario gives
@@ -69,6 +71,7 @@ class Recorder:
         self._epoch = 0.0
         self._open = False
         self._scene: Any = None
+        self._entities: list[tuple[str, Any]] = []   # the scene's entities by id (SceneUpdate hides its fields)
         self._static_next = 1.0   # [s] simulation time the fixed frames are logged again
         self._scene_next = 10.0   # ... and the scene, for live viewers
         self._pending: list[tuple[Callable[[str, Mapping[str, Any]], None], str, Mapping[str, Any]]] = []
@@ -80,7 +83,8 @@ class Recorder:
         counts); messages wait in memory until :meth:`start` opens the sinks."""
         obs = self.bridge.observers
         for pattern, fn in (("sonar/*", self._on_sonar), ("reading/*", self._on_json), ("command/*", self._on_json),
-                            ("fault", self._on_json), ("contact", self._on_json), ("camera/*", self._on_camera)):
+                            ("fault", self._on_json), ("contact", self._on_json), ("camera/*", self._on_camera),
+                            ("world", self._on_world)):
             self._unsub.append(obs.subscribe(pattern, self._early(fn)))
 
     def _early(self, fn: Callable[[str, Mapping[str, Any]], None]) -> Callable[[str, Mapping[str, Any]], None]:
@@ -185,21 +189,27 @@ class Recorder:
         ns = time_ns(self._epoch, t)
         return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
+    def _object_entity(self, o: Any, stamp: Any) -> Any:
+        """A world object (its triangles where they are now, in ``ned``) as a SceneEntity."""
+        from foxglove.messages import Color, Point3, Pose, Quaternion, SceneEntity, TriangleListPrimitive, Vector3
+
+        identity = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+        tri = np.asarray(o.mesh.triangles, dtype=float).reshape(-1, 3)[: 3 * 200_000]
+        r, g, b = (float(v) for v in o.material.color[:3])
+        return SceneEntity(timestamp=stamp, frame_id="ned", id=o.name, triangles=[TriangleListPrimitive(
+            pose=identity, points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in tri],
+            color=Color(r=r, g=g, b=b, a=0.9))])
+
     def _log_static(self, t: float) -> None:
-        from foxglove.messages import (Color, CubePrimitive, FrameTransforms, Point3, Pose, Quaternion, SceneEntity,
-                                       SceneUpdate, TriangleListPrimitive, Vector3)
+        from foxglove.messages import (Color, CubePrimitive, FrameTransforms, Pose, Quaternion, SceneEntity,
+                                       SceneUpdate, Vector3)
 
         stamp = self._stamp(t)
         self._log("/tf", self.channels["/tf"], FrameTransforms(transforms=self._static_tfs(stamp)), t)
-        identity = Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
-        entities = []
-        for o in self.bridge.scenario.objects:
-            tri = np.asarray(o.mesh.triangles, dtype=float).reshape(-1, 3)[: 3 * 200_000]
-            r, g, b = (float(v) for v in o.material.color[:3])
-            entities.append(SceneEntity(timestamp=stamp, frame_id="ned", id=o.name, triangles=[TriangleListPrimitive(
-                pose=identity, points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in tri],
-                color=Color(r=r, g=g, b=b, a=0.9))]))
-        from hilsim.console.scene import hull_box
+        from hilsim.console.scene import hull_box, world_objects
+
+        objects = world_objects(self.bridge)
+        entities = [self._object_entity(o, stamp) for o in objects]
 
         ts = self.bridge.vehicle.thrusters
         hull = hull_box([list(map(float, th.position)) for th in ts.thrusters] if ts is not None else None)
@@ -210,7 +220,26 @@ class Recorder:
                                     orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
                           size=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
                           color=Color(r=0.95, g=0.72, b=0.29, a=1.0))]))
+        self._entities = [(o.name, e) for o, e in zip(objects, entities)] + [
+            ("vehicle", entities[-1])]
         self._scene = SceneUpdate(entities=entities)
+        self._log("/world", self.channels["/world"], self._scene, t)
+
+    def _on_world(self, topic: str, msg: Mapping[str, Any]) -> None:
+        """An object moved: the whole scene again (a viewer seeking after it reads only the last
+        ``/world`` before), the moved object's parts rebuilt from the bridge's world."""
+        from foxglove.messages import SceneUpdate
+
+        from hilsim.console.scene import world_objects
+
+        name = msg.get("object")
+        if self._scene is None or not isinstance(name, str):
+            return
+        t = float(msg.get("t", self.bridge.now()))
+        stamp = self._stamp(t)
+        moved = {o.name: o for o in world_objects(self.bridge, name)}
+        self._entities = [(i, self._object_entity(moved[i], stamp) if i in moved else e) for i, e in self._entities]
+        self._scene = SceneUpdate(entities=[e for _, e in self._entities])
         self._log("/world", self.channels["/world"], self._scene, t)
 
     def _static_tfs(self, stamp: Any) -> list[Any]:

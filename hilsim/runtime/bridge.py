@@ -264,12 +264,16 @@ class Bridge:
         self.teleport(tuple(spec.position), (0.0, 0.0, spec.attitude[2]))  # type: ignore[arg-type]
 
     async def move_object(self, name: str, position: tuple[float, float, float],
-                          rpy: tuple[float, float, float]) -> None:
+                          rpy: tuple[float, float, float], t: float | None = None) -> None:
         """Place object ``name`` at a new pose: the worker's scene (every sonar sees it from the next
-        frame) and the main process's (contacts, DVL and altimeter beams)."""
-        if self._world is not None:
-            self._world.place(name, Pose.from_xyz_rpy(position, rpy).matrix(),
-                              self.scenario.object_placement(name).matrix())
+        frame) and the main process's (contacts, DVL and altimeter beams). Observers hear it on
+        topic ``world`` (``{"t", "action": "move", "object", "position_m", "rpy_rad"}``; t [s] the
+        move's simulation time, as the timeline scheduled it, default :meth:`now`): the console and
+        the recorder then show the main process's scene (:attr:`world`) again."""
+        self.world.place(name, Pose.from_xyz_rpy(position, rpy).matrix(),
+                         self.scenario.object_placement(name).matrix())
+        self.publish("world", {"t": float(self.now() if t is None else t), "action": "move", "object": name,
+                               "position_m": [float(v) for v in position], "rpy_rad": [float(v) for v in rpy]})
         if self.worker.pid is not None:
             await self.worker.change_world("move", name, tuple(position), tuple(rpy))
 

@@ -82,7 +82,7 @@ class TimelineHost(Protocol):
     def set_current(self, velocity: tuple[float, float, float]) -> None: ...
     def teleport(self, position: tuple[float, float, float], rpy: tuple[float, float, float]) -> None: ...
     def move_object(self, name: str, position: tuple[float, float, float],
-                    rpy: tuple[float, float, float]) -> Awaitable[None]: ...
+                    rpy: tuple[float, float, float], t: float | None = None) -> Awaitable[None]: ...
 
 
 @dataclass(frozen=True)
@@ -175,7 +175,7 @@ class Timeline:
         elif ev.action == "teleport":
             h.teleport(p["position"], p["rpy"])
         elif ev.action == "move":
-            await h.move_object(p["object"], p["position"], p["rpy"])
+            await h.move_object(p["object"], p["position"], p["rpy"], t=t)
         elif ev.action == "fault":
             h.faults.inject(p["target"], p["fault"], {k: v for k, v in p.items() if k not in ("target", "fault")})
             if "duration" in p:

@@ -2,7 +2,7 @@
 "use strict";
 
 const $ = (id) => document.getElementById(id);
-const stats = { sonarFrames: {}, states: 0, cameraFrames: 0, errors: [], serverErrors: [] };
+const stats = { sonarFrames: {}, states: 0, cameraFrames: 0, scenes: 0, objects: [], errors: [], serverErrors: [] };
 window.hilsimConsole = stats;   // read by the browser tests
 let ws = null, hello = null, lastState = null, cameraShown = false, cameraWanted = true;
 const sonars = {};              // device -> {canvas, ctx, lut, key, info, image}
@@ -28,6 +28,7 @@ function send(msg) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.st
 function onText(m) {
   if (m.type === "hello") onHello(m);
   else if (m.type === "state") onState(m);
+  else if (m.type === "scene") onScene(m);
   else if (m.type === "error") { stats.serverErrors.push(m.message); say("refused: " + m.message); }
   else if (m.type === "ack") { if (m.op !== "camera") say(`${m.op} ${m.fault} on ${m.target}`); }
 }
@@ -46,6 +47,7 @@ function say(text) { $("message").textContent = text; }
 // ---- hello: the static scene -------------------------------------------------------------------
 function onHello(m) {
   hello = m;
+  stats.objects = m.objects;
   $("scenario").textContent = `scenario ${m.scenario}`;
   track.length = 0;
   for (const p of m.track || []) track.push(p);
@@ -58,6 +60,14 @@ function onHello(m) {
   }
   $("camera-panel").style.display = m.cameras.length ? "" : "none";
   if (m.cameras.length) setCamera(cameraWanted && !document.hidden);
+}
+
+// an object moved: the views draw the objects where they are now
+function onScene(m) {
+  stats.scenes++;
+  if (!hello) return;
+  hello.objects = stats.objects = m.objects;
+  if (lastState) { drawTop(lastState.vehicle); drawSide(lastState.vehicle); }
 }
 
 function el(tag, attrs = {}, text = "") {
