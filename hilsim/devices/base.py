@@ -49,7 +49,7 @@ from hilsim.devices.context import (DeviceContext, Endpoint, OptionError, Period
                                     VehicleView)
 
 __all__ = ["CanDevice", "Device", "DeviceContext", "Endpoint", "NoiseFault", "OptionError", "Periodic", "PtyDevice",
-           "RenderedFrame", "RenderFailed", "TcpServerDevice", "VehicleView"]
+           "RenderedFrame", "RenderFailed", "SensorFaults", "TcpServerDevice", "VehicleView"]
 
 from hilsim.devices.canbus import acquire_bus, bus_location, check_can_options
 
@@ -424,6 +424,35 @@ class NoiseFault:
     def clear(self, sensor: Any) -> None:
         if self.clean is not None:
             sensor.profile = self.clean
+
+
+class SensorFaults(Device):
+    """The faults of a device over one sensor model, ``self.sim``: every fault of ``FAULTS`` injected
+    stays in ``self.faults`` (its parameters) until cleared, for the device's sampling to look at
+    (``"stuck" in self.faults``); ``noise`` scales the figures ``NOISE_FIELDS`` of the model's
+    profile (:class:`NoiseFault`, ``self.noise``). A device puts it before its link's base class
+    (``class DvlDevice(SensorFaults, TcpServerDevice)``) and extends :meth:`inject_fault` and
+    :meth:`clear_fault` for faults that act on more than its own output."""
+
+    NOISE_FIELDS: ClassVar[tuple[str, ...]] = ()
+    sim: Any
+
+    def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
+        super().__init__(name, options, ctx)
+        self.faults: dict[str, Any] = {}
+        self.noise = NoiseFault(*self.NOISE_FIELDS)
+
+    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
+        if fault == "noise":
+            self.noise.inject(self.sim, params)
+        elif fault not in self.FAULTS:
+            super().inject_fault(fault, params)
+        self.faults[fault] = dict(params)
+
+    def clear_fault(self, fault: str) -> None:
+        self.faults.pop(fault, None)
+        if fault == "noise":
+            self.noise.clear(self.sim)
 
 
 class _Unsubscribe:

@@ -27,7 +27,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from hilsim.devices.base import DeviceContext, Endpoint, NoiseFault, TcpServerDevice
+from hilsim.devices.base import DeviceContext, Endpoint, SensorFaults, TcpServerDevice
 from hilsim.protocols import dvl_json as dj
 from hilsim.protocols import dvl_serial as ds
 from hilsim.protocols.codec import Oversize, drain
@@ -39,11 +39,12 @@ TRIGGER_GAP = 1.0 / 15.0   # [s] between queued pings ("quick succession": the f
 IDLE_POLL = 0.1            # [s] how often a DVL with acoustics off looks at its trigger queue
 
 
-class DvlDevice(TcpServerDevice):
+class DvlDevice(SensorFaults, TcpServerDevice):
     protocol = "dvl-a50"
     OPTIONS = {**TcpServerDevice.OPTIONS, "port": dj.PORT, "sensor": "dvl", "serial": True, "path": None,
                "baudrate": 115200}
     FAULTS = ("dropout", "stuck", "noise", "lock_loss")
+    NOISE_FIELDS = ("velocity_noise", "velocity_noise_fraction", "distance_noise")
     COMMAND_CHANNEL = False  # its clients mostly listen to the reports: a quiet one is not idle
     COUNTERS = ("pings", "velocity_reports", "position_reports", "commands", "bad_commands")
 
@@ -65,8 +66,6 @@ class DvlDevice(TcpServerDevice):
         self.triggers = 0
         self.last_ping: Any = None
         self.last_report_t: float | None = None
-        self.faults: dict[str, Any] = {}
-        self._noise = NoiseFault("velocity_noise", "velocity_noise_fraction", "distance_noise")
 
     # -- lifecycle -----------------------------------------------------------------
     async def start(self) -> list[Endpoint]:
@@ -274,16 +273,3 @@ class DvlDevice(TcpServerDevice):
             self.serial_output = int(opts[0])
             return ds.ACK
         return ds.MALFORMED
-
-    # -- faults ----------------------------------------------------------------------
-    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
-        if fault == "noise":
-            self._noise.inject(self.sim, params)
-        elif fault not in self.FAULTS:
-            super().inject_fault(fault, params)
-        self.faults[fault] = dict(params)
-
-    def clear_fault(self, fault: str) -> None:
-        self.faults.pop(fault, None)
-        if fault == "noise":
-            self._noise.clear(self.sim)

@@ -23,7 +23,7 @@ import logging
 import math
 from typing import Any, Mapping
 
-from hilsim.devices.base import DeviceContext, Endpoint, NoiseFault, PtyDevice
+from hilsim.devices.base import DeviceContext, Endpoint, PtyDevice, SensorFaults
 from hilsim.protocols import nmea
 
 log = logging.getLogger(__name__)
@@ -31,11 +31,12 @@ log = logging.getLogger(__name__)
 SENTENCE_BYTES = 80        # [bytes] a full sentence, about (the worst case is 82)
 
 
-class GnssDevice(PtyDevice):
+class GnssDevice(SensorFaults, PtyDevice):
     protocol = "nmea-gnss"
     OPTIONS = {**PtyDevice.OPTIONS, "baudrate": 9600, "sensor": "gnss", "rate": None}
     BAUDRATES = (4800, 9600, 115200)
     FAULTS = ("dropout", "stuck", "noise", "outage")
+    NOISE_FIELDS = ("horizontal_noise", "vertical_noise", "velocity_noise")
     COUNTERS = ("epochs", "fixes")
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
@@ -53,9 +54,7 @@ class GnssDevice(PtyDevice):
         if need > int(self.options["baudrate"]):
             raise self.option_error("baudrate", f"{n} sentences at {profile.rate:g} Hz need about {need:.0f} "
                                     f"bit/s; {self.options['baudrate']} baud is too slow")
-        self.faults: dict[str, Any] = {}
         self.last_epoch = b""
-        self._noise = NoiseFault("horizontal_noise", "vertical_noise", "velocity_noise")
 
     async def start(self) -> list[Endpoint]:
         link = await self.open_pty(self._on_data)
@@ -110,17 +109,11 @@ class GnssDevice(PtyDevice):
             self.link.write(out)
 
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
-        if fault == "noise":
-            self._noise.inject(self.sim, params)
-        elif fault == "outage":
+        if fault == "outage":
             self.sim.outage = True
-        elif fault not in self.FAULTS:
-            super().inject_fault(fault, params)
-        self.faults[fault] = dict(params)
+        super().inject_fault(fault, params)
 
     def clear_fault(self, fault: str) -> None:
-        self.faults.pop(fault, None)
-        if fault == "noise":
-            self._noise.clear(self.sim)
-        elif fault == "outage":
+        super().clear_fault(fault)
+        if fault == "outage":
             self.sim.outage = False

@@ -24,7 +24,7 @@ import logging
 import math
 from typing import Any, Mapping
 
-from hilsim.devices.base import DeviceContext, Endpoint, NoiseFault, PtyDevice
+from hilsim.devices.base import DeviceContext, Endpoint, PtyDevice, SensorFaults
 from hilsim.protocols import ping_protocol as pp
 from hilsim.protocols.codec import drain
 
@@ -35,10 +35,11 @@ STREAMABLE = frozenset({1211, 1212, 1300})
 MIN_PING_INTERVAL_MS = 50
 
 
-class Ping1dDevice(PtyDevice):
+class Ping1dDevice(SensorFaults, PtyDevice):
     protocol = "ping1d"
     OPTIONS = {**PtyDevice.OPTIONS, "sensor": "altimeter", "device_id": 1}
     FAULTS = ("dropout", "stuck", "noise")
+    NOISE_FIELDS = ("distance_noise_fraction",)
     COUNTERS = ("pings", "requests", "sets", "nacks", "streamed")
 
     def __init__(self, name: str, options: Mapping[str, Any], ctx: DeviceContext) -> None:
@@ -51,8 +52,6 @@ class Ping1dDevice(PtyDevice):
         self.streams: set[int] = set()
         self.ping_enabled = True
         self.ping_interval_ms = 100
-        self.faults: dict[str, Any] = {}
-        self._noise = NoiseFault("distance_noise_fraction")
         self._next_ping = 0.0
 
     async def start(self) -> list[Endpoint]:
@@ -201,16 +200,3 @@ class Ping1dDevice(PtyDevice):
         else:
             self.counters["sets"] += 1
             self._ack(mid, src)
-
-    # -- faults --------------------------------------------------------------------
-    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
-        if fault == "noise":
-            self._noise.inject(self.sim, params)
-        elif fault not in self.FAULTS:
-            super().inject_fault(fault, params)
-        self.faults[fault] = dict(params)
-
-    def clear_fault(self, fault: str) -> None:
-        self.faults.pop(fault, None)
-        if fault == "noise":
-            self._noise.clear(self.sim)

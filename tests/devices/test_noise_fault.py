@@ -1,13 +1,14 @@
-"""NoiseFault: the noise fault the sensor devices share (hilsim.devices.base)."""
+"""NoiseFault and SensorFaults: the faults the sensor devices share (hilsim.devices.base)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import pytest
 
-from hilsim.devices.base import NoiseFault
+from hilsim.devices.base import NoiseFault, SensorFaults
 
 
 @dataclass(frozen=True)
@@ -21,6 +22,7 @@ class Profile:
 class Sensor:
     def __init__(self) -> None:
         self.profile = Profile(1.0, 0.5, 2.0, 10.0)
+        self.outage = False
 
 
 def test_scales_the_named_figures_of_the_clean_profile_and_puts_it_back() -> None:
@@ -55,3 +57,46 @@ def test_a_bad_factor_is_refused_and_changes_nothing(factor: float) -> None:
     with pytest.raises(ValueError, match="noise factor"):
         NoiseFault("a_noise").inject(s, {"factor": factor})
     assert s.profile is before
+
+
+class FakeDevice(SensorFaults):
+    """A sensor device with the faults of SensorFaults and one of its own."""
+
+    protocol = "fake"
+    FAULTS = ("dropout", "stuck", "noise", "outage")
+    NOISE_FIELDS = ("a_noise",)
+
+    def __init__(self) -> None:
+        super().__init__("fake", {}, None)  # type: ignore[arg-type]
+        self.sim = Sensor()
+
+    async def start(self) -> list[Any]:
+        return []
+
+    def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
+        if fault == "outage":
+            self.sim.outage = True
+        super().inject_fault(fault, params)
+
+    def clear_fault(self, fault: str) -> None:
+        super().clear_fault(fault)
+        if fault == "outage":
+            self.sim.outage = False
+
+
+def test_sensor_faults_keep_what_is_injected_until_cleared() -> None:
+    d = FakeDevice()
+    clean = d.sim.profile
+    d.set_fault("stuck", True, {})
+    d.set_fault("noise", True, {"factor": 2.0})
+    d.set_fault("outage", True, {"why": "test"})
+    assert d.faults == {"stuck": {}, "noise": {"factor": 2.0}, "outage": {"why": "test"}}
+    assert d.sim.profile == Profile(2.0, 0.5, 2.0, 10.0) and d.sim.outage
+    d.set_fault("noise", False, {})
+    d.set_fault("outage", False, {})
+    assert d.faults == {"stuck": {}} and d.sim.profile is clean and not d.sim.outage
+    d.set_fault("stuck", False, {})
+    assert d.faults == {}
+    with pytest.raises(ValueError, match="has no fault"):
+        d.inject_fault("lock_loss", {})
+    assert d.faults == {}
