@@ -21,24 +21,13 @@ Usage: python benchmarks/bench_bridge.py [--seconds 10] [--hog N] [--fixed-rays]
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
-import signal
-import socket
-import struct
-import subprocess
-import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
-FRAME = 1024 + 96 * 512
-RAYS_OFFSET = 732  # int32 in the DDF frame header: elevation rays per beam of this frame (0: not stated)
+from _common import ROOT, ddf_clients, host_port, start_bridge
 
 
 def hog(seconds: float) -> None:
@@ -50,49 +39,6 @@ def hog(seconds: float) -> None:
             x += 1
 
 
-def recv_exact(s: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        c = s.recv(n - len(buf))
-        if not c:
-            raise EOFError
-        buf += c
-    return bytes(buf)
-
-
-def measure(host: str, port: int, n_clients: int, seconds: float) -> dict:
-    results = [[] for _ in range(n_clients)]
-    stop = time.monotonic() + seconds
-
-    def client(k: int) -> None:
-        s = socket.create_connection((host, port), timeout=10)
-        recv_exact(s, 1024)
-        while time.monotonic() < stop:
-            raw = recv_exact(s, FRAME)
-            arrived = time.time()
-            num, us = struct.unpack_from("<iQ", raw, 0)
-            rays = struct.unpack_from("<i", raw, RAYS_OFFSET)[0]
-            results[k].append((num, arrived, arrived - us / 1e6, rays))
-        s.close()
-
-    ts = [threading.Thread(target=client, args=(k,)) for k in range(n_clients)]
-    for t in ts:
-        t.start()
-    for t in ts:
-        t.join()
-    rates, lat, rays = [], [], []
-    for r in results:
-        if len(r) > 2:
-            rates.append((len(r) - 1) / (r[-1][1] - r[0][1]))
-            lat += [x[2] for x in r[1:]]
-            rays += [x[3] for x in r]
-    lat_ms = np.array(lat) * 1e3
-    return {"clients": n_clients, "rate_min": min(rates), "rate_mean": float(np.mean(rates)), "rates": rates,
-            "p50": float(np.percentile(lat_ms, 50)), "p99": float(np.percentile(lat_ms, 99)),
-            "max": float(lat_ms.max()), "frames": sum(len(r) for r in results),
-            "rays": (min(rays), float(np.median(rays)), max(rays)) if rays else (0, 0.0, 0)}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=10.0)
@@ -100,7 +46,6 @@ def main() -> None:
     ap.add_argument("--fixed-rays", action="store_true", help="the sonar profile with adaptive_rays = false")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
-    ep = tmp / "ep.json"
     scenario: list[str] = []
     if args.fixed_rays:  # a scenario's own profile comes before the bundled one of the same name
         (tmp / "sonars").mkdir()
@@ -110,16 +55,11 @@ def main() -> None:
                                                                     "adaptive_rays      = false"))
         (tmp / "scenario.toml").write_text((ROOT / "scenarios" / "water_tank" / "scenario.toml").read_text())
         scenario = [str(tmp / "scenario.toml")]
-    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", *scenario, "--endpoints", str(ep), "--log-level", "WARNING",
-                             "--status-interval", "0", "--no-console"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    bridge = start_bridge(tmp, *scenario, "--log-level", "WARNING", "--status-interval", "0", "--no-console")
     hogs: list = []
     try:
-        while not ep.exists():
-            if proc.poll() is not None:
-                raise SystemExit("bridge failed to start")
-            time.sleep(0.05)
-        e = next(x for x in json.loads(ep.read_text()) if x["protocol"] == "ddf-stream")
-        host, port = e["address"].rsplit(":", 1)
+        e = bridge.endpoint("ddf-stream")
+        addr = host_port(e["address"])
         print(f"DIDSON-like stream, water tank, profile rate {e['frame_rate_hz']} Hz, 96 x 512 samples, "
               f"96 x 1000 rays; {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f} before"
               + (f"; {args.hog} CPU hog(s) beside the bridge" if args.hog else "")
@@ -131,7 +71,7 @@ def main() -> None:
                 h.start()
             time.sleep(2.0)  # let the bridge feel them before measuring
         for n in (1, 8):
-            r = measure(host, int(port), n, args.seconds)
+            r = ddf_clients(addr, n, args.seconds)
             lo, med, hi = r["rays"]
             rays = f"{lo}/{med:.0f}/{hi}" if hi else "not stated in the header"
             print(f"  {n} client(s): {r['rate_mean']:.1f} frames/s per client (slowest {r['rate_min']:.1f}); "
@@ -146,8 +86,7 @@ def main() -> None:
         for h in hogs:
             h.kill()
             h.join(5)
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(10)
+        bridge.stop()
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ import argparse
 import asyncio
 import json
 import os
-import signal
 import socket
 import struct
 import subprocess
@@ -28,45 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-FRAME = 1024 + 96 * 512
+from _common import ROOT, ddf_clients, host_port, recv_exact, start_bridge
+
 READ_P1 = struct.pack(">HHHBBHH", 1, 0, 6, 1, 3, 0x0002, 2)   # tid 1, unit 1, fc 3, P1
 REPLY = 6 + 1 + 1 + 1 + 4
-
-
-def recv_exact(s: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        c = s.recv(n - len(buf))
-        if not c:
-            raise EOFError
-        buf += c
-    return bytes(buf)
-
-
-def ddf_clients(host: str, port: int, n: int, seconds: float) -> dict:
-    results: list[list[tuple[float, float]]] = [[] for _ in range(n)]
-    stop = time.monotonic() + seconds
-
-    def client(k: int) -> None:
-        s = socket.create_connection((host, port), timeout=10)
-        recv_exact(s, 1024)
-        while time.monotonic() < stop:
-            raw = recv_exact(s, FRAME)
-            arrived = time.time()
-            us = struct.unpack_from("<Q", raw, 4)[0]
-            results[k].append((arrived, arrived - us / 1e6))
-        s.close()
-
-    ts = [threading.Thread(target=client, args=(k,)) for k in range(n)]
-    for t in ts:
-        t.start()
-    for t in ts:
-        t.join()
-    rates = [(len(r) - 1) / (r[-1][0] - r[0][0]) for r in results if len(r) > 2]
-    lat = np.array([x[1] for r in results for x in r[1:]]) * 1e3
-    return {"rate_min": min(rates), "rate_mean": float(np.mean(rates)), "p50": float(np.percentile(lat, 50)),
-            "p99": float(np.percentile(lat, 99))}
 
 
 def modbus_poller(addr: tuple[str, int], seconds: float, out: list[float]) -> None:
@@ -84,11 +48,11 @@ def modbus_poller(addr: tuple[str, int], seconds: float, out: list[float]) -> No
     s.close()
 
 
-def measure(host: str, ddf_port: int, modbus: tuple[str, int], seconds: float) -> dict:
+def measure(ddf: tuple[str, int], modbus: tuple[str, int], seconds: float) -> dict:
     rtts: list[float] = []
     th = threading.Thread(target=modbus_poller, args=(modbus, seconds, rtts))
     th.start()
-    r = ddf_clients(host, ddf_port, 8, seconds)
+    r = ddf_clients(ddf, 8, seconds)
     th.join()
     ms = np.array(rtts) * 1e3
     r.update(modbus_p50=float(np.percentile(ms, 50)), modbus_p99=float(np.percentile(ms, 99)))
@@ -140,30 +104,22 @@ def main() -> None:
         page_main(args.page_client[0], int(args.page_client[1]), float(args.page_client[2]), not args.no_camera)
         return
     tmp = Path(tempfile.mkdtemp())
-    ep = tmp / "ep.json"
-    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", "--endpoints", str(ep), "--log-level", "WARNING",
-                             "--status-interval", "0", "--console", "0"], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    bridge = start_bridge(tmp, "--log-level", "WARNING", "--status-interval", "0", "--console", "0", cwd=ROOT)
     try:
-        while not ep.exists():
-            if proc.poll() is not None:
-                raise SystemExit("bridge failed to start")
-            time.sleep(0.05)
-        eps = json.loads(ep.read_text())
-        ddf = next(x for x in eps if x["protocol"] == "ddf-stream")
-        host, port = ddf["address"].rsplit(":", 1)
+        eps = bridge.endpoints
+        ddf = bridge.endpoint("ddf-stream")
         mb = next(x for x in eps if x["device"] == "depth" and x["transport"] == "tcp")
-        mhost, mport = mb["address"].rsplit(":", 1)
+        ddf_addr, modbus = host_port(ddf["address"]), host_port(mb["address"])
         url = next(x for x in eps if x["device"] == "console")["url"]
         time.sleep(2.0)
         print(f"water tank, DDF at {ddf['frame_rate_hz']} Hz to 8 clients, Modbus P1 at 100 Hz; "
               f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
-        base = measure(host, int(port), (mhost, int(mport)), args.seconds)
+        base = measure(ddf_addr, modbus, args.seconds)
         pages = subprocess.Popen([sys.executable, __file__, "--page-client", url, str(args.pages),
                                   str(args.seconds + 3.0)] + (["--no-camera"] if args.no_camera else []),
                                  stdout=subprocess.PIPE, text=True)
         time.sleep(1.5)
-        with_pages = measure(host, int(port), (mhost, int(mport)), args.seconds)
+        with_pages = measure(ddf_addr, modbus, args.seconds)
         got = json.loads(pages.communicate(timeout=60)[0] or "[]")
         shown = "hidden" if args.no_camera else "shown"
         for label, r in (("no page", base), (f"{args.pages} pages (camera {shown})", with_pages)):
@@ -182,8 +138,7 @@ def main() -> None:
             print(f"  page {i + 1}: {g['state'] / span:.1f} states/s, {g['sonar'] / span:.1f} sonar frames/s, "
                   f"{g['camera'] / span:.1f} camera pictures/s, {g['bytes'] / span / 1e6:.2f} MB/s")
     finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(10)
+        bridge.stop()
 
 
 if __name__ == "__main__":

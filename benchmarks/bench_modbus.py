@@ -33,21 +33,19 @@ is otherwise unchanged).
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import platform
-import signal
 import socket
 import struct
-import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import ROOT, host_port, recv_exact, report_latency, start_bridge, stream_sonar
+
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
@@ -75,16 +73,6 @@ clock.RealTimeClock.__init__ = functools.partialmethod(clock.RealTimeClock.__ini
 from hilsim.cli import main
 sys.exit(main({argv!r}))
 """
-
-
-def recv_exact(s: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        chunk = s.recv(n - len(buf))
-        if not chunk:
-            raise EOFError
-        buf += chunk
-    return bytes(buf)
 
 
 def poller(addr: tuple[str, int], rate: float, count: int, out: "mp.Queue[list[float]] | None") -> None:
@@ -184,30 +172,8 @@ def many_flooders(addr: tuple[str, int], seconds: float, depth: int, n_flood: in
     out.put(replies[0])
 
 
-def ddf_client(addr: tuple[str, int], stop: threading.Event, frames: list[int]) -> None:
-    """Stream the sonar at 30 frames/s; count the bytes received (frames of ~50 kB)."""
-    s = socket.create_connection(addr)
-    s.sendall(b"RATE 30\n")
-    s.settimeout(1.0)
-    while not stop.is_set():
-        try:
-            data = s.recv(1 << 20)
-        except socket.timeout:
-            continue
-        if not data:
-            break
-        frames[0] += len(data)
-    s.close()
-
-
-def pct(xs: list[float], q: float) -> float:
-    xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(q * len(xs)))]
-
-
 def report(label: str, rtts: list[float]) -> None:
-    print(f"  {label:<46} n={len(rtts):5d}  p50 {pct(rtts, 0.5) * 1e3:6.2f} ms  p99 {pct(rtts, 0.99) * 1e3:6.2f} ms"
-          f"  max {max(rtts) * 1e3:6.2f} ms")
+    report_latency(label, rtts, width=46)
 
 
 def main() -> None:
@@ -221,34 +187,26 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench-modbus-"))
     scenario = tmp / "scenario.toml"
     scenario.write_text((ROOT / "scenarios/water_tank/scenario.toml").read_text() + DEVICES)
-    ep_file = tmp / "endpoints.json"
-    log = open(tmp / "bridge.log", "wb")
-    argv = ["run", str(scenario), "--endpoints", str(ep_file), "--status-interval", "0", "--log-level", "WARNING"]
-    if args.clock_margin_ms is None:
-        cmd = [sys.executable, "-m", "hilsim", *argv]
-    else:  # the same command with the clock's default margin changed before the bridge builds it
-        cmd = [sys.executable, "-c", CLOCK_PATCH.format(margin=args.clock_margin_ms / 1e3, argv=argv)]
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=tmp)
+
+    def patched(argv: list[str]) -> list[str]:
+        """The same command with the clock's default margin changed before the bridge builds it."""
+        return [sys.executable, "-c", CLOCK_PATCH.format(margin=args.clock_margin_ms / 1e3, argv=argv)]
+
+    bridge = start_bridge(tmp, str(scenario), "--status-interval", "0", "--log-level", "WARNING", cwd=tmp,
+                          command=None if args.clock_margin_ms is None else patched)
     try:
-        for _ in range(600):
-            if ep_file.exists() or proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        if not ep_file.exists():
-            raise SystemExit(f"bridge did not start:\n{(tmp / 'bridge.log').read_text()}")
-        eps = json.loads(ep_file.read_text())
+        eps = bridge.endpoints
 
         def addr(proto: str, transport: str = "tcp", device: str | None = None) -> tuple[str, int]:
             e = next(e for e in eps if e["protocol"] == proto and e["transport"] == transport
                      and (device is None or e["device"] == device))
-            host, port = e["address"].rsplit(":", 1)
-            return host, int(port)
+            return host_port(e["address"])
 
         modbus = addr("modbus-keller", device="bench_depth")
         unlimited = addr("modbus-keller", device="bench_depth_unlimited")
         rtu_path = next(e["address"] for e in eps if e["device"] == "bench_depth" and e["transport"] == "pty")
         print(f"hilsim Modbus benchmark: {platform.python_implementation()} {platform.python_version()}, "
-              f"{os.cpu_count()} CPUs, {platform.machine()}; bridge pid {proc.pid}; {args.seconds:g} s per run"
+              f"{os.cpu_count()} CPUs, {platform.machine()}; bridge pid {bridge.pid}; {args.seconds:g} s per run"
               + ("" if args.clock_margin_ms is None else f"; clock async_margin {args.clock_margin_ms:g} ms"))
         ctx = mp.get_context("spawn")
 
@@ -266,7 +224,7 @@ def main() -> None:
 
         stop = threading.Event()
         ddf_bytes = [0]
-        t = threading.Thread(target=ddf_client, args=(addr("ddf-stream"), stop, ddf_bytes), daemon=True)
+        t = threading.Thread(target=stream_sonar, args=(addr("ddf-stream"), 30, stop, ddf_bytes), daemon=True)
         t.start()
         time.sleep(1.0)
         b0, t0 = ddf_bytes[0], time.monotonic()
@@ -310,12 +268,7 @@ def main() -> None:
         report("one master polling at 50 Hz", rtts)
         print(f"  (the 9-byte reply alone takes {9 * 10 / 115200 * 1e3:.2f} ms on the wire)")
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+        bridge.stop()
 
 
 def rtu_rtt(path: str, count: int) -> list[float]:

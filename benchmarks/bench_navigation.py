@@ -29,8 +29,6 @@ import os
 import platform
 import socket
 import struct
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -38,17 +36,7 @@ from pathlib import Path
 
 import serial
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def pct(xs: list[float], q: float) -> float:
-    xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(q * len(xs)))] if xs else float("nan")
-
-
-def latency(label: str, rtts: list[float]) -> None:
-    print(f"  {label:<44} n={len(rtts):5d}  p50 {pct(rtts, 0.5) * 1e3:6.2f} ms  p99 {pct(rtts, 0.99) * 1e3:6.2f} ms"
-          f"  max {max(rtts) * 1e3:6.2f} ms")
+from _common import ROOT, host_port, pct, report_latency, start_bridge, stream_sonar
 
 
 def rate(label: str, arrivals: list[float], stamps: list[float], nominal: float) -> None:
@@ -62,21 +50,6 @@ def rate(label: str, arrivals: list[float], stamps: list[float], nominal: float)
     jitter = pct([abs(g - 1.0 / nominal) for g in gaps], 0.99)
     print(f"  {label:<44} nominal {nominal:5.2f} Hz  arrivals {r_arr:6.3f} Hz ({100 * (r_arr / nominal - 1):+5.2f} %)"
           f"  stamps {r_stamp:6.3f} Hz  jitter p99 {jitter * 1e3:6.2f} ms")
-
-
-def ddf_client(addr: tuple[str, int], stop: threading.Event, got: list[int]) -> None:
-    s = socket.create_connection(addr)
-    s.sendall(b"RATE 15\n")
-    s.settimeout(0.5)
-    while not stop.is_set():
-        try:
-            data = s.recv(1 << 20)
-        except socket.timeout:
-            continue
-        if not data:
-            break
-        got[0] += len(data)
-    s.close()
 
 
 def dvl_json(addr: tuple[str, int], seconds: float) -> None:
@@ -111,7 +84,7 @@ def dvl_json(addr: tuple[str, int], seconds: float) -> None:
             pass
         rtts.append(time.perf_counter() - t0)
     s.close()
-    latency("DVL JSON get_config (TCP)", rtts)
+    report_latency("DVL JSON get_config (TCP)", rtts)
     rate("DVL velocity reports (1.15 m: range mode 1)", vel_t, vel_s, 10.0)
     rate("DVL dead-reckoning reports", pos_t, pos_s, 5.0)
 
@@ -128,7 +101,7 @@ def dvl_serial(path: str) -> None:
             while b"wrv," not in buf or not buf.split(b"wrv,", 1)[1].count(b"\n"):
                 buf += port.read(port.in_waiting or 1)
             rtts.append(time.perf_counter() - t0)
-    latency("DVL serial wcv (pty, 115200 baud)", rtts)
+    report_latency("DVL serial wcv (pty, 115200 baud)", rtts)
 
 
 def gnss(path: str, baud: int, nominal: float, seconds: float) -> None:
@@ -175,7 +148,7 @@ def ping1d(path: str, seconds: float) -> None:
             while read_packet(port, buf)[0] != 1212:
                 pass
             rtts.append(time.perf_counter() - t0)
-        latency("Ping1D general_request distance (pty)", rtts)
+        report_latency("Ping1D general_request distance (pty)", rtts)
         port.write(ping_packet(1400, struct.pack("<H", 1300)))
         arrivals, stamps = [], []
         end = time.monotonic() + seconds
@@ -193,33 +166,20 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0, help="length of each rate measurement [s] (default 5)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-nav-"))
-    ep_file = tmp / "endpoints.json"
-    log = open(tmp / "bridge.log", "wb")
-    cmd = [sys.executable, "-m", "hilsim", "run", "water_tank", "--endpoints", str(ep_file), "--status-interval", "0",
-           "--log-level", "WARNING", "--no-console", "--pty-dir", str(tmp / "run")]
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+    bridge = start_bridge(tmp, "water_tank", "--status-interval", "0", "--log-level", "WARNING", "--no-console",
+                          "--pty-dir", str(tmp / "run"), cwd=ROOT)
     stop = threading.Event()
     try:
-        for _ in range(600):
-            if ep_file.exists() or proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        if not ep_file.exists():
-            raise SystemExit(f"bridge did not start:\n{(tmp / 'bridge.log').read_text()}")
-        eps = json.loads(ep_file.read_text())
-
-        def ep(proto: str) -> dict:
-            return next(e for e in eps if e["protocol"] == proto)
+        ep = bridge.endpoint
 
         def hp(e: dict) -> tuple[str, int]:
-            host, port = e["address"].rsplit(":", 1)
-            return host, int(port)
+            return host_port(e["address"])
 
         print(f"hilsim navigation benchmark: {platform.python_implementation()} {platform.python_version()}, "
-              f"{os.cpu_count()} CPUs; load average {os.getloadavg()[0]:.2f}; bridge pid {proc.pid}; "
+              f"{os.cpu_count()} CPUs; load average {os.getloadavg()[0]:.2f}; bridge pid {bridge.pid}; "
               f"{args.seconds:g} s per rate run")
         got = [0]
-        t = threading.Thread(target=ddf_client, args=(hp(ep("ddf-stream")), stop, got), daemon=True)
+        t = threading.Thread(target=stream_sonar, args=(hp(ep("ddf-stream")), 15, stop, got), daemon=True)
         t.start()
         time.sleep(1.5)
         b0, t0 = got[0], time.monotonic()
@@ -234,11 +194,7 @@ def main() -> None:
               f"load average now {os.getloadavg()[0]:.2f})")
     finally:
         stop.set()
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        bridge.stop()
 
 
 if __name__ == "__main__":

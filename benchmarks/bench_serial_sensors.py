@@ -17,24 +17,18 @@ baud (KELLER bus beside Modbus) and a WitMotion IMU with its UART stream on a pt
 from __future__ import annotations
 
 import argparse
-import json
+import multiprocessing as mp
 import os
 import platform
 import select
-import signal
-import socket
 import struct
-import subprocess
-import sys
 import tempfile
 import termios
-import multiprocessing as mp
-import multiprocessing.synchronize
 import time
 import tty
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import ROOT, host_port, pct, report_latency, start_bridge, stream_sonar
 
 DEVICES = """
 [[devices]]
@@ -74,19 +68,6 @@ def read_exact(fd: int, n: int, timeout: float = 1.0) -> bytes:
         if r:
             buf += os.read(fd, n - len(buf))
     return buf
-
-
-def pct(xs: list[float], q: float) -> float:
-    s = sorted(xs)
-    return s[min(len(s) - 1, int(q * len(s)))]
-
-
-def report(label: str, xs: list[float]) -> None:
-    if not xs:
-        print(f"  {label:<44} no replies")
-        return
-    print(f"  {label:<44} p50 {pct(xs, .5) * 1e3:6.2f} ms  p99 {pct(xs, .99) * 1e3:6.2f} ms  "
-          f"max {max(xs) * 1e3:6.2f} ms  (n={len(xs)})")
 
 
 def keller_rtts(path: str, count: int, rate: float) -> list[float]:
@@ -145,21 +126,6 @@ def wit_rate(path: str, code: int, seconds: float) -> tuple[float, list[float]]:
         os.close(fd)
 
 
-def ddf_client(addr: tuple[str, int], stop: "mp.synchronize.Event") -> None:
-    """Stream the sonar at 30 frames/s (a process of its own: its 1.5 MB/s must not starve the
-    serial readers of the interpreter)."""
-    s = socket.create_connection(addr)
-    s.sendall(b"RATE 30\n")
-    s.settimeout(0.5)
-    while not stop.is_set():
-        try:
-            if not s.recv(1 << 20):
-                break
-        except socket.timeout:
-            continue
-    s.close()
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="length of each run [s] (default 5)")
@@ -167,36 +133,27 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench-serial-"))
     scenario = tmp / "scenario.toml"
     scenario.write_text((ROOT / "scenarios/water_tank/scenario.toml").read_text() + DEVICES)
-    ep_file = tmp / "endpoints.json"
-    log = open(tmp / "bridge.log", "wb")
-    proc = subprocess.Popen([sys.executable, "-m", "hilsim", "run", str(scenario), "--endpoints", str(ep_file),
-                             "--status-interval", "0", "--log-level", "WARNING"],
-                            stdout=log, stderr=subprocess.STDOUT, cwd=tmp)
+    bridge = start_bridge(tmp, str(scenario), "--status-interval", "0", "--log-level", "WARNING", cwd=tmp)
     try:
-        for _ in range(600):
-            if ep_file.exists() or proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        if not ep_file.exists():
-            raise SystemExit(f"bridge did not start:\n{(tmp / 'bridge.log').read_text()}")
-        eps = json.loads(ep_file.read_text())
+        eps = bridge.endpoints
         keller = next(e["address"] for e in eps if e["device"] == "bench_depth" and e["protocol"] == "keller-bus"
                       and e["transport"] == "pty")
         uart = next(e["address"] for e in eps if e["device"] == "bench_imu" and e["protocol"] == "witmotion-uart")
-        ddf = next(e["address"] for e in eps if e["protocol"] == "ddf-stream" and e["transport"] == "tcp")
-        host, port = ddf.rsplit(":", 1)
+        ddf = host_port(bridge.endpoint("ddf-stream", transport="tcp")["address"])
         load = os.getloadavg()
         print(f"hilsim serial sensors benchmark: {platform.python_implementation()} {platform.python_version()}, "
               f"{os.cpu_count()} CPUs; load average {load[0]:.2f} {load[1]:.2f}; {args.seconds:g} s per run")
         n = int(args.seconds * 20)
         print("KELLER bus F73 (P1) round trip at 9600 baud (5-byte request, 9-byte reply):")
-        report("sonar idle, 20 Hz polling", keller_rtts(keller, n, 20.0))
+        report_latency("sonar idle, 20 Hz polling", keller_rtts(keller, n, 20.0))
         ctx = mp.get_context("spawn")
         stop = ctx.Event()
-        t = ctx.Process(target=ddf_client, args=((host, int(port)), stop), daemon=True)
+        # the sonar at 30 frames/s from a process of its own: its 1.5 MB/s must not starve the
+        # serial readers of the interpreter
+        t = ctx.Process(target=stream_sonar, args=(ddf, 30, stop), daemon=True)
         t.start()
         time.sleep(1.0)
-        report("sonar streaming (RATE 30), 20 Hz polling", keller_rtts(keller, n, 20.0))
+        report_latency("sonar streaming (RATE 30), 20 Hz polling", keller_rtts(keller, n, 20.0))
         print(f"  (the 9-byte reply takes {9 * 10 / 9600 * 1e3:.2f} ms on the wire at 9600 baud; the pty does "
               f"not pace the master's request)")
         print("WitMotion UART stream at 115200 baud, angles + quaternion, sonar streaming:")
@@ -209,12 +166,7 @@ def main() -> None:
         stop.set()
         t.join(3)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+        bridge.stop()
 
 
 if __name__ == "__main__":

@@ -24,7 +24,8 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import DDF_HEADER, ROOT, host_port, recv_exact
+
 sys.path.insert(0, str(ROOT))
 
 from hilsim.protocols import aris as ar  # noqa: E402
@@ -71,8 +72,7 @@ def start_bridge(tmp: Path) -> tuple[object, asyncio.AbstractEventLoop, dict, th
 
 
 def addr(ep) -> tuple[str, int]:
-    h, p = ep.address.rsplit(":", 1)
-    return h, int(p)
+    return host_port(ep.address)
 
 
 def oculus_client(ep, seconds: float, out: list, b, off: float) -> None:
@@ -123,21 +123,11 @@ def aris_client(ep, seconds: float, out: list, b, off: float) -> None:
 def ddf_client(ep, seconds: float, out: list, b, off: float) -> None:
     s = socket.create_connection(addr(ep), timeout=10)
     s.sendall(b"RATE 15\n")
-
-    def exact(n: int) -> bytes:
-        r = bytearray()
-        while len(r) < n:
-            c = s.recv(n - len(r))
-            if not c:
-                raise EOFError
-            r += c
-        return bytes(r)
-
-    h = exact(1024)
-    size = 1024 + struct.unpack_from("<i", h, 16)[0] * struct.unpack_from("<i", h, 24)[0]
+    h = recv_exact(s, DDF_HEADER)
+    size = DDF_HEADER + struct.unpack_from("<i", h, 16)[0] * struct.unpack_from("<i", h, 24)[0]
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        f = exact(size)
+        f = recv_exact(s, size)
         out.append(time.time() - struct.unpack_from("<Q", f, 4)[0] / 1e6 - off)
     s.close()
 
