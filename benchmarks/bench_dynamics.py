@@ -25,6 +25,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -58,11 +59,16 @@ def physics_manoeuvre(seconds: float, rate: float = RATE) -> float:
     """Steps/s as :func:`physics_direct`, but every DOF moving: each thruster's command
     changes at every 10 Hz control tick (smooth, different per thruster), so the rotors
     are always spinning up or down and surge, sway, heave and yaw are all driven."""
-    vehicle, thrusters = Vehicle(PROFILE), PROFILE.thruster_set()
-    state, dt = VehicleState(), 1.0 / rate
+    return _manoeuvre(PROFILE, VehicleState(), seconds, rate)
+
+
+def _manoeuvre(profile: Any, state: VehicleState, seconds: float, rate: float) -> float:
+    """Steps/s of ``Vehicle(profile)`` from ``state`` with the commands of :func:`physics_manoeuvre`."""
+    vehicle, thrusters = Vehicle(profile), profile.thruster_set()
+    dt, n_th = 1.0 / rate, len(profile.thrusters)
     n = int(seconds * rate)
     every = max(1, int(rate / 10))
-    plan = [[0.15 + 0.45 * math.sin(0.9 * k * dt + 1.3 * i) for i in range(8)] for k in range(0, n, every)]
+    plan = [[0.15 + 0.45 * math.sin(0.9 * k * dt + 1.3 * i) for i in range(n_th)] for k in range(0, n, every)]
     start = time.perf_counter()
     for k in range(n):
         if k % every == 0:
@@ -108,17 +114,7 @@ def physics_6dof(seconds: float, rate: float = RATE, profile: str = "bluerov2_he
     """Steps/s of the 6-DOF model (a BlueROV2 profile, all thrusters with lag and watchdog,
     RK4 on 12 states) with the commands of :func:`physics_manoeuvre`: every DOF moving."""
     prof = load_vehicle_profile(ROOT / "devices" / "vehicles" / f"{profile}.toml")
-    vehicle, thrusters = Vehicle(prof), prof.thruster_set()
-    state, dt, n_th = VehicleState(position=np.array([0.0, 0.0, 5.0])), 1.0 / rate, len(prof.thrusters)
-    n = int(seconds * rate)
-    every = max(1, int(rate / 10))
-    plan = [[0.15 + 0.45 * math.sin(0.9 * k * dt + 1.3 * i) for i in range(n_th)] for k in range(0, n, every)]
-    start = time.perf_counter()
-    for k in range(n):
-        if k % every == 0:
-            thrusters.command_all("normalized", plan[k // every], state.time)
-        state = vehicle.step_with_thrusters(state, dt, thrusters)
-    return n / (time.perf_counter() - start)
+    return _manoeuvre(prof, VehicleState(position=np.array([0.0, 0.0, 5.0])), seconds, rate)
 
 
 def report_6dof() -> None:
