@@ -22,7 +22,6 @@ class Profile:
 class Sensor:
     def __init__(self) -> None:
         self.profile = Profile(1.0, 0.5, 2.0, 10.0)
-        self.outage = False
 
 
 def test_scales_the_named_figures_of_the_clean_profile_and_puts_it_back() -> None:
@@ -63,25 +62,24 @@ class FakeDevice(SensorFaults):
     """A sensor device with the faults of SensorFaults and one of its own."""
 
     protocol = "fake"
-    FAULTS = ("dropout", "stuck", "noise", "outage")
+    FAULTS = ("dropout", "stuck", "noise", "lamp")
     NOISE_FIELDS = ("a_noise",)
 
     def __init__(self) -> None:
         super().__init__("fake", {}, None)  # type: ignore[arg-type]
         self.sim = Sensor()
+        self.log: list[str] = []
 
     async def start(self) -> list[Any]:
         return []
 
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
-        if fault == "outage":
-            self.sim.outage = True
         super().inject_fault(fault, params)
+        self.log.append(f"+{fault}")
 
     def clear_fault(self, fault: str) -> None:
         super().clear_fault(fault)
-        if fault == "outage":
-            self.sim.outage = False
+        self.log.append(f"-{fault}")
 
 
 def test_sensor_faults_keep_what_is_injected_until_cleared() -> None:
@@ -89,14 +87,15 @@ def test_sensor_faults_keep_what_is_injected_until_cleared() -> None:
     clean = d.sim.profile
     d.set_fault("stuck", True, {})
     d.set_fault("noise", True, {"factor": 2.0})
-    d.set_fault("outage", True, {"why": "test"})
-    assert d.faults == {"stuck": {}, "noise": {"factor": 2.0}, "outage": {"why": "test"}}
-    assert d.sim.profile == Profile(2.0, 0.5, 2.0, 10.0) and d.sim.outage
+    d.set_fault("lamp", True, {"colour": "red"})
+    assert d.faults == {"stuck": {}, "noise": {"factor": 2.0}, "lamp": {"colour": "red"}}
+    assert d.sim.profile == Profile(2.0, 0.5, 2.0, 10.0)
     d.set_fault("noise", False, {})
-    d.set_fault("outage", False, {})
-    assert d.faults == {"stuck": {}} and d.sim.profile is clean and not d.sim.outage
+    d.set_fault("lamp", False, {})
+    assert d.faults == {"stuck": {}} and d.sim.profile is clean
     d.set_fault("stuck", False, {})
     assert d.faults == {}
     with pytest.raises(ValueError, match="has no fault"):
         d.inject_fault("lock_loss", {})
     assert d.faults == {}
+    assert d.log == ["+stuck", "+noise", "+lamp", "-noise", "-lamp", "-stuck"]
