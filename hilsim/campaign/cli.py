@@ -27,7 +27,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--shared-out", action="store_true",
                    help="with --ray: --out is a folder every worker sees; runs write there (else their "
                         "folders are sent back to this machine)")
-    p.add_argument("--resume", action="store_true", help="skip the runs already in --out's results")
+    p.add_argument("--resume", action="store_true",
+                   help="run only what --out's results lack: missing runs, and runs that ended in an error "
+                        "(pass, fail and timeout are results and are kept)")
     return p
 
 

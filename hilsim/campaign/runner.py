@@ -136,7 +136,10 @@ def run_campaign(path: Path | str, out: Path | None = None, workers: int | None 
     journal = Journal(out / "results.jsonl")
     if not resume:
         journal.path.unlink(missing_ok=True)
-    done = {r["key"] for r in journal.load()}
+    # done: what --resume keeps. A mission run that errored (its bridge or stack could not run,
+    # a worker died) produced no result and is run again; pass, fail and timeout are results.
+    done = {r["key"] for r in _latest(journal.load(), c.kind)
+            if not (c.kind == "mission" and r.get("status") == "error")}
     cases = expand(c)
     tasks = _tasks(c, cases, out, done, ray is not None and not shared)
     total = len(tasks) if c.kind == "mission" else sum(len(t.args[3]) for t in tasks)
@@ -184,7 +187,7 @@ def run_campaign(path: Path | str, out: Path | None = None, workers: int | None 
 
         cleanup_all()
         progress.close()
-        rows = journal.load()
+        rows = _latest(journal.load(), c.kind)
         table = report = None
         if rows:
             table = write_table(rows, out) if c.kind == "mission" else _index(rows, out)
@@ -201,6 +204,17 @@ def _index(rows: list[dict[str, Any]], out: Path) -> Path:
     final = path.with_name("index" + path.suffix)
     path.replace(final)
     return final
+
+
+def _latest(rows: list[dict[str, Any]], kind: str) -> list[dict[str, Any]]:
+    """A mission journal's rows, the last one of each run (a run redone by ``--resume`` after an
+    error appends its new row), in the order the runs first appeared. Render rows are per frame."""
+    if kind != "mission":
+        return rows
+    latest: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        latest[r["key"]] = r
+    return list(latest.values())
 
 
 def _tasks(c: Campaign, cases: list[Case], out: Path, done: set[str], send_back: bool) -> list[Task]:

@@ -90,21 +90,33 @@ def test_four_reference_missions_pass_locally(four: Outcome) -> None:
         assert all(r["truth.contacts"] == 0 for r in rows)
 
 
-def test_resume_runs_only_what_is_missing(four: Outcome) -> None:
+def test_resume_runs_only_what_is_missing_or_errored(four: Outcome) -> None:
+    """--resume after a crash: a run missing from the journal and a run recorded as an error
+    (its bridge or stack could not run) are run again; a failed run is a result and is kept."""
     journal = four.out / "results.jsonl"
-    lines = journal.read_text().splitlines()
-    keep = [ln for ln in lines if json.loads(ln)["index"] != 2]
-    journal.write_text("\n".join(keep) + "\n")
-    before = {json.loads(ln)["key"]: json.loads(ln)["wall_s"] for ln in keep}
-    untouched = four.out / "runs" / json.loads(keep[0])["run_dir"] / "bridge.log"
+    rows = [json.loads(ln) for ln in journal.read_text().splitlines()]
+    keep = [r for r in rows if r["index"] != 2]
+    for r in keep:
+        if r["index"] == 1:
+            r.update(status="error", failed="error", failure="RuntimeError: the bridge did not come up")
+        elif r["index"] == 3:
+            r.update(status="fail", failed="depth")
+    journal.write_text("".join(json.dumps(r) + "\n" for r in keep))
+    before = {r["key"]: r["wall_s"] for r in keep if r["index"] != 1}
+    untouched = four.out / "runs" / next(r for r in keep if r["index"] == 0)["run_dir"] / "bridge.log"
     mtime = untouched.stat().st_mtime_ns
     again = run_campaign(four.campaign.path, out=four.out, resume=True)
-    assert again.ran == 1
-    assert table(again) == table(four)
-    redone = [r for r in again.rows if r["index"] == 2]
-    assert len(redone) == 1 and redone[0]["status"] == "pass"
-    assert {r["key"]: r["wall_s"] for r in again.rows if r["index"] != 2} == before
+    assert again.ran == 2
+    assert len(again.rows) == 4 and sorted(r["index"] for r in again.rows) == [0, 1, 2, 3]  # one row a run
+    expected = table(four)
+    key3 = next(r["key"] for r in again.rows if r["index"] == 3)
+    expected[key3] = ("fail", "depth")
+    assert table(again) == expected
+    redone = [r for r in again.rows if r["index"] in (1, 2)]
+    assert [r["status"] for r in redone] == ["pass", "pass"]
+    assert {r["key"]: r["wall_s"] for r in again.rows if r["index"] not in (1, 2)} == before
     assert untouched.stat().st_mtime_ns == mtime
+    assert len(read_table(four.out / "results.parquet")) == 4
 
 
 def _listening(pids: set[int]) -> list[str]:
@@ -160,8 +172,13 @@ def test_the_same_campaign_on_ray_local_gives_the_same_table(four: Outcome, tmp_
             return super().write(text)
 
     watch = Watch()
-    o = run_campaign(four.campaign.path, out=tmp_path / "ray", ray="local", ray_cpus=2, stream=watch)
-    assert table(o) == table(four)
+    # the seed-1 half of the campaign (the same cases, keys and seeds: a case's key is its parameters')
+    half = tmp_path / "half.toml"
+    half.write_text(four.campaign.path.read_text().replace("seed = [1, 2]", "seed = [1]"))
+    o = run_campaign(half, out=tmp_path / "ray", ray="local", ray_cpus=2, stream=watch)
+    assert len(o.rows) == 2 and all(r["params"]["seed"] == 1 for r in o.rows)
+    same_cases = {k: v for k, v in table(four).items() if k in table(o)}
+    assert len(same_cases) == 2 and table(o) == same_cases
     for r in o.rows:   # the run folders came back from the Ray workers
         run = o.out / "runs" / r["run_dir"]
         assert (run / "stack" / "summary.json").is_file() and (run / "bridge.log").is_file()
