@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from typing import Callable, Final, Optional, Union
 
 from hilsim.protocols.codec import NEED_DATA, BadFrame, ByteBuffer, Junk, NeedData
+from hilsim.protocols.modbus_pdu import crc16  # KELLER frames carry the CRC-16/MODBUS (high byte first)
 
 BROADCAST: Final = 0
 TRANSPARENT: Final = 250          # every device answers it (stand-alone use only)
@@ -83,27 +84,6 @@ CHANNELS: Final = {0: ("CH0", "bar"), 1: ("P1", "bar"), 2: ("P2", "bar"), 3: ("T
                    4: ("TOB1", "degC"), 5: ("TOB2", "degC")}
 STAT_POWER_UP: Final = 0x80       # /STD: power-up mode (else standard mode)
 STAT_ERR2: Final = 0x40           # analogue output computation error
-
-
-def _crc_table() -> tuple[int, ...]:
-    table = []
-    for i in range(256):
-        crc = i
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
-
-
-_TABLE: Final = _crc_table()
-
-
-def crc16(data: Union[bytes, bytearray, memoryview], start: int = 0, end: Optional[int] = None) -> int:
-    """CRC-16/MODBUS (0xA001 reflected, init 0xFFFF) of ``data[start:end]``."""
-    crc, table = 0xFFFF, _TABLE
-    for i in range(start, len(data) if end is None else end):
-        crc = (crc >> 8) ^ table[(crc ^ data[i]) & 0xFF]
-    return crc
 
 
 def crc_ok(buf: Union[bytes, bytearray], start: int, end: int) -> bool:
