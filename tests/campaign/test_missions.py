@@ -35,6 +35,7 @@ duration_s = 130.0
 [stack]
 command = "{STACK}"
 timeout_s = 90.0
+cpus = 1.0             # two runs at once on a 2-core machine (each about 1 core at time scale 4)
 
 [matrix]
 seed = [1, 2]
