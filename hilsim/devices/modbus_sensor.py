@@ -43,7 +43,7 @@ import math
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
-from hilsim.devices.base import Device, DeviceContext, Endpoint, OptionError
+from hilsim.devices.base import Device, DeviceContext, Endpoint, NoiseFault, OptionError
 from hilsim.devices.serial_dialects import KellerBus, WitUart
 from hilsim.links.modbus import (ModbusRtuServer, ModbusTarget, ModbusTcpServer, RtuSession, SerialLineTcpServer,
                                  WriteAction)
@@ -187,6 +187,7 @@ class ModbusSensorDevice(Device):
     #   sensor's profile multiplied by ``factor``.
     FAULTS = ("dropout", "stuck", "noise")
     stuck = False
+    _noise: NoiseFault | None = None
 
     def inject_fault(self, fault: str, params: Mapping[str, Any]) -> None:
         if fault == "dropout":
@@ -194,15 +195,11 @@ class ModbusSensorDevice(Device):
         elif fault == "stuck":
             self.stuck = True
         elif fault == "noise":
-            factor = float(params.get("factor", 10.0))
-            if not (factor >= 0 and math.isfinite(factor)):
-                raise ValueError(f"noise factor must be >= 0, got {factor}")
-            if not hasattr(self, "_clean_profile"):
-                self._clean_profile = self.sensor.profile
-            p = self._clean_profile
-            noisy = {f.name: getattr(p, f.name) * factor for f in dataclasses.fields(p)
-                     if "noise" in f.name and isinstance(getattr(p, f.name), (int, float))}
-            self.sensor.profile = dataclasses.replace(p, **noisy)
+            if self._noise is None:  # every numeric noise figure of the sensor's profile
+                p = self.sensor.profile
+                self._noise = NoiseFault(*(f.name for f in dataclasses.fields(p)
+                                           if "noise" in f.name and isinstance(getattr(p, f.name), (int, float))))
+            self._noise.inject(self.sensor, params)
         else:
             super().inject_fault(fault, params)
 
@@ -211,8 +208,8 @@ class ModbusSensorDevice(Device):
             self.target.silent = False
         elif fault == "stuck":
             self.stuck = False
-        elif fault == "noise" and hasattr(self, "_clean_profile"):
-            self.sensor.profile = self._clean_profile
+        elif fault == "noise" and self._noise is not None:
+            self._noise.clear(self.sensor)
 
     def sample(self, t: float = math.nan) -> None:
         """Sample the sensor at the vehicle's current state and publish it to the registers."""

@@ -422,3 +422,26 @@ def test_an_idle_modbus_tcp_client_is_disconnected_and_a_polling_one_kept(tmp_pa
             idle_w.close()
 
     asyncio.run(main())
+
+
+@pytest.mark.parametrize("spec", [KELLER, WIT], ids=["keller", "witmotion"])
+def test_the_noise_fault_scales_every_noise_figure_of_the_clean_profile(tmp_path: Path, spec: tuple) -> None:
+    """noise: each numeric '*noise*' figure of the sensor's profile times the factor (of the clean
+    profile when injected again), nothing else; cleared, the clean profile is back; a bad factor
+    is refused and changes nothing."""
+    name, proto, opts = spec
+    dev = device_class(proto)(name, opts, SmallContext(tmp_path))  # type: ignore[arg-type]
+    sensor = dev.sensor  # type: ignore[attr-defined]
+    clean = sensor.profile
+    figures = {f.name: getattr(clean, f.name) for f in dataclasses.fields(clean)}
+    noisy = [k for k, v in figures.items() if "noise" in k and isinstance(v, (int, float))]
+    assert noisy and any(figures[k] > 0 for k in noisy)
+    for factor in (5.0, 2.0):
+        dev.inject_fault("noise", {"factor": factor})
+        now = {f.name: getattr(sensor.profile, f.name) for f in dataclasses.fields(clean)}
+        assert now == {k: v * factor if k in noisy else v for k, v in figures.items()}
+    with pytest.raises(ValueError, match="noise factor"):
+        dev.inject_fault("noise", {"factor": -1.0})
+    assert getattr(sensor.profile, noisy[0]) == figures[noisy[0]] * 2.0
+    dev.clear_fault("noise")
+    assert sensor.profile is clean
