@@ -148,8 +148,9 @@ class DeviceContext(Protocol):
         """Run ``callback(t)`` once at simulation time ``t`` [s] (now if already past)."""
 
     def defer(self, coro: Awaitable[Any]) -> Awaitable[Any] | None:
-        """For a periodic callback that must await: return ``ctx.defer(coro)``. In fast mode the
-        clock waits for it; in real time it runs as a task and the tick returns at once."""
+        """For a periodic callback that must await: return ``ctx.defer(coro)``. In fast mode and
+        in lockstep the clock waits for it; in real time it runs as a task and the tick returns
+        at once."""
 
     async def advance(self, dt: float) -> None:
         """Lockstep (only for a device with ``clock_master = True``): run the simulation ``dt`` [s]

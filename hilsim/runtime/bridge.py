@@ -396,9 +396,10 @@ class Bridge:
         return isinstance(self.scheduler.clock, LockstepClock)
 
     def defer(self, coro: Awaitable[Any]) -> Awaitable[Any] | None:
-        """For scheduler callbacks: in fast mode return ``coro`` (virtual time waits for it);
-        in real time run it as a task so the tick returns at once."""
-        if self.fast:
+        """For scheduler callbacks: in fast mode and in lockstep return ``coro`` (simulated time
+        waits for it: a sonar frame is rendered at its simulated time, however fast the peer
+        steps); in real time run it as a task so the tick returns at once."""
+        if self.fast or self.lockstep:
             return coro
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
