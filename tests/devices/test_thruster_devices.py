@@ -156,7 +156,9 @@ def test_vesc_can_set_rpm_over_socketcand_moves_the_thruster_and_status_follows_
     finally:
         client.shutdown()
     assert erpms and abs(erpms[-1] - target) <= 0.03 * target          # settled at the command
-    rising = [e for e in erpms if 0.05 * target < e < 0.9 * target]
+    # the rotor's lag (0.04 s) takes 0.18 s from 2 % to 99 %: about 9 status periods, so a status
+    # tick or two the loaded bridge runs late cannot hide the rise (an echo of the command would)
+    rising = [e for e in erpms if 0.02 * target < e < 0.99 * target]
     assert rising, "no STATUS_1 caught the rotor on its way up: telemetry echoes the command?"
     assert all(b >= a - 0.01 * target for a, b in zip(erpms, erpms[1:]))  # monotone first-order rise
 
