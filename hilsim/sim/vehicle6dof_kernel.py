@@ -11,14 +11,15 @@ issue #19 runs above 1000x real time at 200 Hz with its thrusters.
 - :func:`pack` turns the profile's constants into the parameter vector ``par``.
 - :func:`rk4` advances the 12 states by one step under a wrench held over it in
   still water; :func:`rk4_current` in a uniform steady current or a current
-  tabulated over time and depth
-  (bilinear, clamped at the grids' ends: :class:`hilsim.sim.vehicle.Current`'s
-  law), evaluated at each RK4 stage's depth and time.
+  tabulated over time and depth (bilinear, clamped at the grids' ends:
+  :class:`hilsim.sim.vehicle.Current`'s law), evaluated at each RK4 stage's depth
+  and time.
 - ``HILSIM_JIT=0`` in the environment, or numba not importable, runs the same
-  functions in CPython (about 2x slower than the hand-written float code they
-  replace; :data:`COMPILED` says which). numba caches the machine code beside this
-  file (``__pycache__``) or in the user's cache directory, so a bridge compiles it
-  once per installation (about 2 s), then loads it in tens of milliseconds.
+  functions in CPython (about 4x slower; :data:`COMPILED` says which). numba caches
+  the machine code beside this file (``__pycache__``), or in the user's cache
+  directory (``NUMBA_CACHE_DIR`` names another), so a bridge compiles it once per
+  installation (about 2 s), then loads it in about 0.1 s; with no writable cache
+  folder each process compiles it.
 """
 
 from __future__ import annotations
@@ -209,10 +210,16 @@ def _compile() -> tuple[bool, str]:
         import numba
     except ImportError as exc:  # a platform without numba's wheels: CPython runs the same code
         return False, f"numba not importable ({exc})"
-    jit: Callable[[Any], Any] = numba.njit(cache=True, nogil=True)
     g = globals()
-    for name in ("_bracket", "_current", "_deriv", "rk4_current", "rk4"):  # callees first: rk4 resolves them as globals
-        g[name] = jit(g[name])
+    names = ("_bracket", "_current", "_deriv", "rk4_current", "rk4")  # callees first: rk4 resolves them as globals
+    try:
+        jit: Callable[[Any], Any] = numba.njit(cache=True, nogil=True)
+        compiled = [jit(g[name]) for name in names]
+    except RuntimeError:  # no writable cache folder (numba's "no locator available"): compile in each process
+        jit = numba.njit(nogil=True)
+        compiled = [jit(g[name]) for name in names]
+    for name, fn in zip(names, compiled):
+        g[name] = fn
     return True, ""
 
 
