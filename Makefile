@@ -60,8 +60,20 @@ peers:
 	  else echo "note: missing test peers:$$need (install them with apt-get; their tests skip meanwhile)" >&2; fi; \
 	fi
 
+# The test files run on TEST_WORKERS processes (pytest-xdist; a file's tests stay together, so a
+# module's bridge is started once), then the tests marked `alone` (missions, the soak, the abuse
+# floods: they load both cores) one at a time. Exit status 5 is pytest's "none selected".
+# TEST_WORKERS=0 runs everything in one process, in order.
+TEST_WORKERS ?= 2
 test: $(TSTAMP) peers
+ifeq ($(TEST_WORKERS),0)
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+else
+	@rc=0; \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not alone" $(PYTEST_ARGS) || [ $$? = 5 ] || rc=1; \
+	$(BIN)/python -m pytest -q -m alone $(PYTEST_ARGS) || [ $$? = 5 ] || rc=1; \
+	exit $$rc
+endif
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done

@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.alone  # missions load both cores: make test runs these after the others, one at a time
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 SCENARIO = ROOT / "scenarios" / "water_tank" / "scenario.toml"

@@ -18,6 +18,8 @@ from hilsim.campaign.mission import bridge_options
 from hilsim.campaign.results import read_table
 from hilsim.campaign.runner import Outcome, run_campaign
 
+pytestmark = pytest.mark.alone  # missions load both cores: make test runs these after the others, one at a time
+
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = ROOT / "examples" / "mission.py"
 FAULTS = ROOT / "scenarios" / "water_tank" / "campaigns" / "faults" / "vertical_thrusters_fail.toml"

@@ -34,7 +34,7 @@ import pytest
 from tests.runtime import abuse_clients as ac
 from tests.runtime.bridge_helpers import start_bridge
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.alone, pytest.mark.timeout(240)]  # alone: both cores (make test)
 
 # the slots a server keeps for its clients: the devices' defaults (hilsim/devices/*.py)
 CLIENT_LIMITS = {"ddf-stream": 16, "oculus": 8, "aris": 4, "socketcand": 8, "modbus-keller": 32,

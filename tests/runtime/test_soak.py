@@ -12,7 +12,7 @@ import pytest
 
 from tests.runtime.bridge_helpers import ROOT
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.alone, pytest.mark.timeout(180)]  # alone: both cores (make test)
 
 
 def load_soak():
