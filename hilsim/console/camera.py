@@ -69,13 +69,16 @@ class CameraFeed:
     async def _run(self) -> None:
         while self._wants:
             t0 = time.monotonic()
+            cold = self.bridge.worker.pid is None  # this render starts the worker (about 1 s): not a render's cost
             for mount in self.mounts:
                 await self._one(mount)
             if not self._wants:
                 break
             used = time.monotonic() - t0
             # at the highest rate asked, but at most SHARE of the render worker's time
-            period = max(1.0 / max(self._wants.values()), used / self.SHARE)
+            period = 1.0 / max(self._wants.values())
+            if not cold:
+                period = max(period, used / self.SHARE)
             self._wake.clear()
             delay = period - used
             if delay > 0:

@@ -61,3 +61,37 @@ def test_nothing_is_built_for_no_page_and_a_page_turns_it_on_and_off():
     assert kinds.get("state", 0) >= 10 and kinds.get("camera", 0) >= 2 and kinds.get("hello") == 1, kinds
     assert kinds["state"] <= 25                              # at most 10 updates a second
     assert out["closed"][0] <= 1 and out["closed"][1] <= 1 and out["closed"][2:] == (False, False), out
+
+
+def test_the_camera_keeps_its_rate_when_its_first_picture_starts_the_render_worker(tmp_path):
+    """A scenario without a sonar device starts the render worker for the console's first camera
+    picture (about 1 s): that start is not a render's cost, so the feed does not stretch its period
+    to it (at SHARE 0.1 it waited over 10 s for the second picture)."""
+    src = find_scenario(None).read_text()
+    scn = tmp_path / "scenario.toml"
+    scn.write_text(src[: src.index("# ---- devices")]
+                   + '\n[[devices]]\nname = "depth"\nprotocol = "modbus-keller"\ntransport = ["tcp"]\nport = 0\n')
+
+    async def go() -> int:
+        b = Bridge(scn, console=0, status_interval=0, run_dir=tmp_path / "run")
+        await b.start()
+        try:
+            assert b.worker.pid is None  # no device renders: the worker is not running
+            camera = b.attached.camera
+            run = asyncio.ensure_future(b.run(None))
+            camera.want("page", 4.0)
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 15.0
+            while camera.frames < 1 and loop.time() < end:   # the first picture, the worker's start
+                await asyncio.sleep(0.05)
+            first = camera.frames
+            await asyncio.sleep(3.0)
+            camera.unwant("page")
+            b.stop()
+            await run
+            return camera.frames - first
+        finally:
+            await b.close()
+
+    more = asyncio.run(asyncio.wait_for(go(), 60))
+    assert more >= 3, more  # 4 Hz asked: at least 3 pictures in the 3 s after the first
