@@ -45,6 +45,26 @@ def proc_stats(pid: int) -> tuple[float, int]:
         return rss, len(os.listdir(f"/proc/{pid}/fd"))
 
 
+def accept_backlog(addresses: list[str]) -> dict[str, int]:
+    """Connections waiting in each listening socket's accept queue (``/proc/net/tcp``: a LISTEN
+    row's rx_queue). A connection reset before the server accepted it stays in that queue and is
+    accepted later, taking a client slot until its first read fails: after a connect flood the
+    servers are only settled once these queues are empty."""
+    ports = {int(host_port(a)[1]): a for a in addresses}
+    out = {a: 0 for a in addresses}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            f = line.split()
+            port = int(f[1].rsplit(":", 1)[1], 16)
+            if f[3] == "0A" and port in ports:  # 0A: TCP_LISTEN
+                out[ports[port]] += int(f[4].split(":")[1], 16)
+    return out
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time [s] process ``pid`` has used (its own threads, not its children)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
